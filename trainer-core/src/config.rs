@@ -1,0 +1,174 @@
+//! The model's hyper-parameters and their validation.
+
+use serde::{Deserialize, Serialize};
+
+/// Every size that shapes XFactor's two networks.
+///
+/// The same struct is embedded in cluster YAML files, written beside checkpoints and read from
+/// fixture JSON, so a model can always be rebuilt from what sits next to its weights.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct XFactorConfig {
+    /// Square training image side in pixels (`H = W`); must be a multiple of `patch_size`.
+    pub image_size: usize,
+    /// Patch side `p`; tokens carry `3 p^2` pixel values.
+    pub patch_size: usize,
+    /// Model width `C`.
+    pub width: usize,
+    /// Attention heads `h`; `C / h` must be a multiple of 4 for 2D RoPE.
+    pub num_heads: usize,
+    /// Multi-view layers in PoseEnc.
+    pub pose_layers: usize,
+    /// Multi-view layers in Render.
+    pub render_layers: usize,
+    /// Pose-latent size `Cp`.
+    pub pose_dim: usize,
+    /// Learned global tokens `G` appended (twice) to every PoseEnc view.
+    pub global_tokens: usize,
+    /// Round q, k, v to bfloat16 before attention as the authors' release does; off by default
+    /// because the float32 model is the reference.
+    #[serde(default)]
+    pub round_qkv_bf16: bool,
+}
+
+/// A configuration that cannot build a model, with the field at fault.
+#[derive(Debug, thiserror::Error, PartialEq, Eq)]
+pub enum ConfigError {
+    /// A size that must be positive is zero.
+    #[error("model config: `{field}` must be positive")]
+    Zero {
+        /// The offending field.
+        field: &'static str,
+    },
+    /// `image_size` does not split into whole patches.
+    #[error("model config: image_size {image_size} is not a multiple of patch_size {patch_size}")]
+    PatchGrid {
+        /// Configured image side.
+        image_size: usize,
+        /// Configured patch side.
+        patch_size: usize,
+    },
+    /// Width does not split evenly into heads whose size RoPE can rotate.
+    #[error(
+        "model config: width {width} / num_heads {num_heads} must be a whole head size divisible by 4 (2D RoPE)"
+    )]
+    HeadSize {
+        /// Configured width.
+        width: usize,
+        /// Configured head count.
+        num_heads: usize,
+    },
+}
+
+impl XFactorConfig {
+    /// The paper's configuration: width 1024, 16 heads, patch 16, 8 + 8 layers, `Cp = 256`,
+    /// 256x256 images, `G = 32`.
+    pub fn paper() -> Self {
+        Self {
+            image_size: 256,
+            patch_size: 16,
+            width: 1024,
+            num_heads: 16,
+            pose_layers: 8,
+            render_layers: 8,
+            pose_dim: 256,
+            global_tokens: 32,
+            round_qkv_bf16: false,
+        }
+    }
+
+    /// The benchmark configuration: 64x64, patch 8, width 256, 8 heads, 4 + 4 layers,
+    /// `Cp = 64`, `G = 8`. Small enough to train on a laptop CPU.
+    pub fn benchmark() -> Self {
+        Self {
+            image_size: 64,
+            patch_size: 8,
+            width: 256,
+            num_heads: 8,
+            pose_layers: 4,
+            render_layers: 4,
+            pose_dim: 64,
+            global_tokens: 8,
+            round_qkv_bf16: false,
+        }
+    }
+
+    /// Checks every constraint the networks rely on.
+    pub fn validate(&self) -> Result<(), ConfigError> {
+        for (field, value) in [
+            ("image_size", self.image_size),
+            ("patch_size", self.patch_size),
+            ("width", self.width),
+            ("num_heads", self.num_heads),
+            ("pose_dim", self.pose_dim),
+            ("global_tokens", self.global_tokens),
+        ] {
+            if value == 0 {
+                return Err(ConfigError::Zero { field });
+            }
+        }
+        if self.image_size % self.patch_size != 0 {
+            return Err(ConfigError::PatchGrid {
+                image_size: self.image_size,
+                patch_size: self.patch_size,
+            });
+        }
+        if self.width % self.num_heads != 0 || (self.width / self.num_heads) % 4 != 0 {
+            return Err(ConfigError::HeadSize {
+                width: self.width,
+                num_heads: self.num_heads,
+            });
+        }
+        Ok(())
+    }
+
+    /// Head size `d = C / h`.
+    pub fn head_dim(&self) -> usize {
+        self.width / self.num_heads
+    }
+
+    /// Patches per image side.
+    pub fn grid_side(&self) -> usize {
+        self.image_size / self.patch_size
+    }
+
+    /// Patch tokens per view, `T`.
+    pub fn tokens_per_view(&self) -> usize {
+        self.grid_side() * self.grid_side()
+    }
+
+    /// Values per patch token, `3 p^2`.
+    pub fn patch_values(&self) -> usize {
+        3 * self.patch_size * self.patch_size
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn presets_are_valid() {
+        XFactorConfig::paper().validate().unwrap();
+        XFactorConfig::benchmark().validate().unwrap();
+    }
+
+    #[test]
+    fn bad_sizes_name_the_culprit() {
+        let mut c = XFactorConfig::benchmark();
+        c.image_size = 60;
+        assert!(matches!(c.validate(), Err(ConfigError::PatchGrid { .. })));
+        let mut c = XFactorConfig::benchmark();
+        c.num_heads = 16;
+        c.width = 96;
+        assert!(
+            c.validate()
+                .unwrap_err()
+                .to_string()
+                .contains("num_heads 16")
+        );
+        let mut c = XFactorConfig::benchmark();
+        c.pose_dim = 0;
+        assert_eq!(c.validate(), Err(ConfigError::Zero { field: "pose_dim" }));
+    }
+}

@@ -1,0 +1,15 @@
+//! `trainer-core`: the XFactor model, its weights and (later) its objectives and trainer.
+//!
+//! This crate knows nothing about networking: workers and the coordinator drive it through
+//! plain function calls.
+
+pub mod backend;
+pub mod checkpoint;
+pub mod config;
+pub mod flax;
+pub mod model;
+pub mod parity;
+pub mod rng;
+
+pub use config::XFactorConfig;
+pub use model::XFactor;

@@ -1,0 +1,43 @@
+//! XFactor's two networks in burn, computing what the authors' JAX release computes.
+
+mod init;
+mod layers;
+mod multiview;
+mod patch;
+mod pose_enc;
+mod render;
+mod rope;
+
+pub use init::ParamInit;
+pub use layers::{Dense, LayerNorm, LayerScale, Mlp2, Mlp3, RmsNorm, gelu_tanh};
+pub use multiview::{MultiViewLayer, SegmentMasks};
+pub use patch::{patchify, unpatchify};
+pub use pose_enc::PoseEnc;
+pub use render::{PoseLatents, Render};
+pub use rope::RopeTable;
+
+use burn::module::Module;
+use burn::tensor::Device;
+
+use crate::config::{ConfigError, XFactorConfig};
+
+/// Both networks, trained jointly and saved as one.
+#[derive(Module, Debug)]
+pub struct XFactor {
+    /// The stereo pose encoder.
+    pub pose_enc: PoseEnc,
+    /// The renderer.
+    pub render: Render,
+}
+
+impl XFactor {
+    /// Builds a freshly initialised model (the authors' from-scratch initialisation), every
+    /// parameter drawn from a stream keyed by `seed` and its position in the model.
+    pub fn new(config: &XFactorConfig, seed: u64, device: &Device) -> Result<Self, ConfigError> {
+        config.validate()?;
+        let mut init = ParamInit::new(seed, device);
+        let pose_enc = PoseEnc::new(config, &mut init);
+        let render = Render::new(config, &mut init);
+        Ok(Self { pose_enc, render })
+    }
+}

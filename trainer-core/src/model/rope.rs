@@ -1,0 +1,66 @@
+//! 2D rotary position embedding over the patch grid.
+
+use burn::tensor::{Device, Tensor, TensorData};
+
+/// Precomputed `cos`/`sin` tables for one token layout: a `rows x cols` patch grid followed by
+/// `identity_tokens` tokens (PoseEnc's global tokens) that are left unrotated.
+#[derive(Debug, Clone)]
+pub struct RopeTable {
+    cos: Tensor<5>,
+    sin: Tensor<5>,
+}
+
+impl RopeTable {
+    /// Builds the tables for head size `head_dim` (a multiple of 4).
+    ///
+    /// Frequencies `w_i = 10000^(-i / (d/4))`, each repeated twice; a patch at `(I, J)` gets the
+    /// angles `concat(w * I, w * J)`.
+    pub fn new(
+        rows: usize,
+        cols: usize,
+        identity_tokens: usize,
+        head_dim: usize,
+        device: &Device,
+    ) -> Self {
+        let quarter = head_dim / 4;
+        let freqs: Vec<f64> = (0..quarter)
+            .flat_map(|i| {
+                let w = 10000f64.powf(-(i as f64) / quarter as f64);
+                [w, w]
+            })
+            .collect();
+        let tokens = rows * cols + identity_tokens;
+        let mut cos = Vec::with_capacity(tokens * head_dim);
+        let mut sin = Vec::with_capacity(tokens * head_dim);
+        for row in 0..rows {
+            for col in 0..cols {
+                let angles = freqs
+                    .iter()
+                    .map(|w| w * row as f64)
+                    .chain(freqs.iter().map(|w| w * col as f64));
+                for angle in angles {
+                    cos.push(angle.cos() as f32);
+                    sin.push(angle.sin() as f32);
+                }
+            }
+        }
+        cos.extend(std::iter::repeat_n(1.0f32, identity_tokens * head_dim));
+        sin.extend(std::iter::repeat_n(0.0f32, identity_tokens * head_dim));
+        let shape = [1, 1, tokens, 1, head_dim];
+        Self {
+            cos: Tensor::from_data(TensorData::new(cos, shape), device),
+            sin: Tensor::from_data(TensorData::new(sin, shape), device),
+        }
+    }
+
+    /// Rotates `x: (B, V, T', h, d)`: `x * cos + rot(x) * sin`, where `rot` maps each pair
+    /// `(x[2k], x[2k+1])` to `(-x[2k+1], x[2k])`.
+    pub fn apply(&self, x: Tensor<5>) -> Tensor<5> {
+        let [b, v, t, h, d] = x.dims();
+        let pairs = x.clone().reshape([b, v, t, h, d / 2, 2]);
+        let even = pairs.clone().narrow(5, 0, 1);
+        let odd = pairs.narrow(5, 1, 1);
+        let rotated = Tensor::cat(vec![odd.neg(), even], 5).reshape([b, v, t, h, d]);
+        x * self.cos.clone() + rotated * self.sin.clone()
+    }
+}
