@@ -1,23 +1,23 @@
 //! The fused multi-view layer: global attention across all views plus per-view attention, both
 //! restricted by segment ids, then a gated MLP.
 
-use burn::module::Module;
-use burn::tensor::module::attention;
-use burn::tensor::ops::AttentionModuleOptions;
-use burn::tensor::{Bool, DType, Tensor};
+use burn::module::{Module, Param};
+use burn::tensor::module::linear;
+use burn::tensor::{DType, Tensor};
 
 use super::init::ParamInit;
-use super::layers::{Dense, LayerNorm, LayerScale, Mlp2, RmsNorm, gelu_tanh};
+use super::layers::{Dense, LayerNorm, LayerScale, Mlp2, RmsNorm, gelu_tanh, rms_normalize};
 use super::rope::RopeTable;
 
-/// Attention masks derived once per forward pass from the tokens' segment ids and shared by
-/// every layer. `None` means every token may attend to every other.
+/// Additive attention biases derived once per forward pass from the tokens' segment ids and
+/// shared by every layer: `0` where attention is allowed, `-inf` where segments differ. `None`
+/// means every token may attend to every other.
 #[derive(Debug, Clone)]
 pub struct SegmentMasks {
-    /// `(B, h, V*T', V*T')`, true where attention is forbidden.
-    global: Option<Tensor<4, Bool>>,
-    /// `(B*V, h, T', T')`, true where attention is forbidden.
-    per_view: Option<Tensor<4, Bool>>,
+    /// `(B, 1, V*T', V*T')`, broadcast over heads.
+    global: Option<Tensor<4>>,
+    /// `(B*V, 1, T', T')`, broadcast over heads.
+    per_view: Option<Tensor<4>>,
 }
 
 impl SegmentMasks {
@@ -29,23 +29,42 @@ impl SegmentMasks {
         }
     }
 
-    /// Builds the masks from float segment ids `(B, V, T')` for `num_heads` heads.
-    pub fn from_segments(segments: Tensor<3>, num_heads: usize) -> Self {
+    /// Builds the biases from float segment ids `(B, V, T')`.
+    pub fn from_segments(segments: Tensor<3>) -> Self {
         let [b, v, t] = segments.dims();
-        let forbid = |ids: Tensor<2>| -> Tensor<4, Bool> {
+        let bias = |ids: Tensor<2>| -> Tensor<4> {
             let [rows, n] = ids.dims();
             let query = ids.clone().reshape([rows, n, 1]).expand([rows, n, n]);
             let key = ids.reshape([rows, 1, n]).expand([rows, n, n]);
-            (query - key)
-                .not_equal_elem(0.0)
+            let forbidden = (query - key).not_equal_elem(0.0);
+            Tensor::zeros([rows, n, n], &forbidden.device())
+                .mask_fill(forbidden, f32::NEG_INFINITY)
                 .reshape([rows, 1, n, n])
-                .expand([rows, num_heads, n, n])
         };
         Self {
-            global: Some(forbid(segments.clone().reshape([b, v * t]))),
-            per_view: Some(forbid(segments.reshape([b * v, t]))),
+            global: Some(bias(segments.clone().reshape([b, v * t]))),
+            per_view: Some(bias(segments.reshape([b * v, t]))),
         }
     }
+}
+
+/// Softmax attention with scale `1/sqrt(d)` over `(batch, heads, tokens, d)` inputs, restricted
+/// by an additive bias.
+///
+/// Written out rather than calling burn's fused op because autodiff decomposes that one anyway;
+/// here the scale is applied to the `N x d` queries instead of the `N x N` scores, and the
+/// softmax shift (which has zero gradient) is detached, saving full passes over the scores.
+fn attend(q: Tensor<4>, k: Tensor<4>, v: Tensor<4>, bias: Option<&Tensor<4>>) -> Tensor<4> {
+    let head_dim = q.dims()[3];
+    let scores = (q * (1.0 / (head_dim as f64).sqrt())).matmul(k.swap_dims(2, 3));
+    let scores = match bias {
+        Some(bias) => scores + bias.clone(),
+        None => scores,
+    };
+    let shift = scores.clone().max_dim(3).detach();
+    let weights = (scores - shift).exp();
+    let normaliser = weights.clone().sum_dim(3).recip();
+    (weights * normaliser).matmul(v)
 }
 
 /// One multi-view transformer layer (see SPEC "Multi-view layer").
@@ -104,48 +123,58 @@ impl MultiViewLayer {
     pub fn forward(&self, z: Tensor<4>, rope: &RopeTable, masks: &SegmentMasks) -> Tensor<4> {
         let [b, v, t, c] = z.dims();
         let (h, d) = (self.num_heads, c / self.num_heads);
-        let projected = self
-            .qkv
-            .forward(self.attn_norm.forward(z.clone()))
-            .reshape([b, v, t, 6, h, d]);
-        let mut parts = projected
-            .chunk(6, 3)
-            .into_iter()
-            .map(|part| part.reshape([b, v, t, h, d]));
-        let mut next = || parts.next().expect("qkv projection splits into six parts");
-        let (q, k, val, qs, ks, vs) = (next(), next(), next(), next(), next(), next());
-        let q = rope.apply(self.q_norm.forward(q));
-        let k = rope.apply(self.k_norm.forward(k));
-        let qs = rope.apply(self.qs_norm.forward(qs));
-        let ks = rope.apply(self.ks_norm.forward(ks));
+        let normed = self.attn_norm.forward(z.clone());
+        // The fused `C -> 6C` projection is applied as three products with column blocks of its
+        // kernel, so q, k, qs, ks come out as one contiguous (B, V, T', 4, h, d) tensor to be
+        // normalised and rotated together, with no copy of the activations.
+        let kernel = self.qkv.kernel.val();
+        let columns = |start: usize, count: usize| kernel.clone().narrow(1, start * c, count * c);
+        let project = |weight: Tensor<2>| linear(normed.clone(), weight, None);
+        let queries_keys =
+            project(Tensor::cat(vec![columns(0, 2), columns(3, 2)], 1)).reshape([b, v, t, 4, h, d]);
+        let values = project(columns(2, 1));
+        let view_values = project(columns(5, 1));
+        let alphas = Tensor::stack::<3>(
+            vec![
+                self.q_norm.alpha.val(),
+                self.k_norm.alpha.val(),
+                self.qs_norm.alpha.val(),
+                self.ks_norm.alpha.val(),
+            ],
+            0,
+        );
+        let queries_keys = rope.apply(rms_normalize(queries_keys, alphas.unsqueeze::<6>()));
+        let part = |index: usize| queries_keys.clone().narrow(3, index, 1);
 
-        let global_heads = |x: Tensor<5>| self.round(x.reshape([b, v * t, h, d]).swap_dims(1, 2));
-        let global = attention(
-            global_heads(q),
-            global_heads(k),
-            global_heads(val),
-            masks.global.clone(),
-            None,
-            AttentionModuleOptions::default(),
+        let global_heads = |x: Tensor<6>| self.round(x.reshape([b, v * t, h, d]).swap_dims(1, 2));
+        let global = attend(
+            global_heads(part(0)),
+            global_heads(part(1)),
+            global_heads(values.reshape([b, v, t, 1, h, d])),
+            masks.global.as_ref(),
         )
         .swap_dims(1, 2)
         .reshape([b, v, t, c]);
 
-        let view_heads = |x: Tensor<5>| self.round(x.reshape([b * v, t, h, d]).swap_dims(1, 2));
-        let per_view = attention(
-            view_heads(qs),
-            view_heads(ks),
-            view_heads(vs),
-            masks.per_view.clone(),
-            None,
-            AttentionModuleOptions::default(),
+        let view_heads = |x: Tensor<6>| self.round(x.reshape([b * v, t, h, d]).swap_dims(1, 2));
+        let per_view = attend(
+            view_heads(part(2)),
+            view_heads(part(3)),
+            view_heads(view_values.reshape([b, v, t, 1, h, d])),
+            masks.per_view.as_ref(),
         )
         .swap_dims(1, 2)
         .reshape([b, v, t, c]);
 
-        let attended = self
-            .out_proj
-            .forward(Tensor::cat(vec![global, per_view], 3));
+        // The `2C -> C` output projection of concat(global, per_view), as two products with the
+        // kernel's row blocks instead of materialising the concatenation.
+        let out_kernel = self.out_proj.kernel.val();
+        let attended = linear(global, out_kernel.clone().narrow(0, 0, c), None)
+            + linear(
+                per_view,
+                out_kernel.narrow(0, c, c),
+                self.out_proj.bias.as_ref().map(Param::val),
+            );
         let z0 = z + self.attn_scale.forward(attended);
         let mlp_out = self
             .mlp

@@ -28,6 +28,8 @@ pub struct PoseEnc {
     pub pose_head: Mlp3,
     /// Patch side `p`.
     pub patch_size: usize,
+    /// Heads `h`, which set RoPE's head size.
+    pub num_heads: usize,
 }
 
 impl PoseEnc {
@@ -43,6 +45,7 @@ impl PoseEnc {
             out_norm: LayerNorm::new(init, width, true),
             pose_head: Mlp3::new(init, 2 * width, 4 * width, width, config.pose_dim),
             patch_size: config.patch_size,
+            num_heads: config.num_heads,
         }
     }
 
@@ -66,7 +69,7 @@ impl PoseEnc {
         let grid = (height / self.patch_size, width / self.patch_size);
         let patches = grid.0 * grid.1;
         let [globals, c] = self.global_embed.dims();
-        let head_dim = c / self.layers.first().map_or(1, |layer| layer.num_heads);
+        let head_dim = c / self.num_heads;
 
         let tokens = self
             .patch_embed
@@ -96,8 +99,7 @@ impl PoseEnc {
         .reshape([1, 1, 2 * globals])
         .expand([b, v, 2 * globals]);
         let segments = Tensor::cat(vec![patch_segments, copy_segments], 2);
-        let num_heads = c / head_dim;
-        let masks = SegmentMasks::from_segments(segments, num_heads);
+        let masks = SegmentMasks::from_segments(segments);
         let rope = RopeTable::new(grid.0, grid.1, 2 * globals, head_dim, &device);
         for layer in &self.layers {
             z = layer.forward(z, &rope, &masks);

@@ -35,7 +35,7 @@ pub struct Render {
     pub pixel_head: Mlp3,
     /// Patch side `p`.
     pub patch_size: usize,
-    /// Heads `h`, needed for the segment masks.
+    /// Heads `h`, which set RoPE's head size.
     pub num_heads: usize,
 }
 
@@ -117,7 +117,6 @@ impl Render {
         let masks = match mask {
             Some(mask) => SegmentMasks::from_segments(
                 mask.reshape([b, 1, patches]).expand([b, views, patches]),
-                self.num_heads,
             ),
             None => SegmentMasks::unrestricted(),
         };

@@ -6,8 +6,8 @@ use burn::tensor::{Device, Tensor, TensorData};
 /// `identity_tokens` tokens (PoseEnc's global tokens) that are left unrotated.
 #[derive(Debug, Clone)]
 pub struct RopeTable {
-    cos: Tensor<5>,
-    sin: Tensor<5>,
+    cos: Tensor<6>,
+    sin: Tensor<6>,
 }
 
 impl RopeTable {
@@ -46,21 +46,53 @@ impl RopeTable {
         }
         cos.extend(std::iter::repeat_n(1.0f32, identity_tokens * head_dim));
         sin.extend(std::iter::repeat_n(0.0f32, identity_tokens * head_dim));
-        let shape = [1, 1, tokens, 1, head_dim];
+        let shape = [1, 1, tokens, 1, 1, head_dim];
         Self {
             cos: Tensor::from_data(TensorData::new(cos, shape), device),
             sin: Tensor::from_data(TensorData::new(sin, shape), device),
         }
     }
 
-    /// Rotates `x: (B, V, T', h, d)`: `x * cos + rot(x) * sin`, where `rot` maps each pair
-    /// `(x[2k], x[2k+1])` to `(-x[2k+1], x[2k])`.
-    pub fn apply(&self, x: Tensor<5>) -> Tensor<5> {
-        let [b, v, t, h, d] = x.dims();
-        let pairs = x.clone().reshape([b, v, t, h, d / 2, 2]);
+    /// Rotates `x: (B, V, T', n, h, d)` (`n` tensors of heads per token): `x * cos + rot(x) *
+    /// sin`, where `rot` maps each pair `(x[2k], x[2k+1])` to `(-x[2k+1], x[2k])`.
+    pub fn apply(&self, x: Tensor<6>) -> Tensor<6> {
+        let [b, v, t, n, h, d] = x.dims();
+        let pairs = x.clone().reshape([b, v, t, n * h, d / 2, 2]);
         let even = pairs.clone().narrow(5, 0, 1);
         let odd = pairs.narrow(5, 1, 1);
-        let rotated = Tensor::cat(vec![odd.neg(), even], 5).reshape([b, v, t, h, d]);
+        let rotated = Tensor::cat(vec![odd.neg(), even], 5).reshape([b, v, t, n, h, d]);
         x * self.cos.clone() + rotated * self.sin.clone()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn rotation_keeps_pair_norms_and_leaves_extra_tokens_alone() {
+        let device = Device::flex();
+        let (rows, cols, extra, d) = (2, 3, 2, 8);
+        let tokens = rows * cols + extra;
+        let values: Vec<f32> = (0..tokens * d).map(|i| (i as f32 * 0.37).sin()).collect();
+        let x = Tensor::<6>::from_data(
+            TensorData::new(values.clone(), [1, 1, tokens, 1, 1, d]),
+            &device,
+        );
+        let rotated = RopeTable::new(rows, cols, extra, d, &device)
+            .apply(x)
+            .try_into_vec_as::<f32>()
+            .unwrap();
+        for pair in 0..tokens * d / 2 {
+            let before = values[2 * pair].hypot(values[2 * pair + 1]);
+            let after = rotated[2 * pair].hypot(rotated[2 * pair + 1]);
+            assert!((before - after).abs() < 1e-5);
+        }
+        // Patch (0, 0) has angle zero and the extra tokens are the identity.
+        assert_eq!(rotated[..d], values[..d]);
+        assert_eq!(rotated[rows * cols * d..], values[rows * cols * d..]);
+        // Patch (0, 1): the first d/2 angles use the row (0), the last d/2 the column (1).
+        assert_eq!(rotated[d..d + d / 2], values[d..d + d / 2]);
+        assert_ne!(rotated[d + d / 2..2 * d], values[d + d / 2..2 * d]);
     }
 }
