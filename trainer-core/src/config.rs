@@ -107,13 +107,15 @@ impl XFactorConfig {
                 return Err(ConfigError::Zero { field });
             }
         }
-        if self.image_size % self.patch_size != 0 {
+        if !self.image_size.is_multiple_of(self.patch_size) {
             return Err(ConfigError::PatchGrid {
                 image_size: self.image_size,
                 patch_size: self.patch_size,
             });
         }
-        if self.width % self.num_heads != 0 || (self.width / self.num_heads) % 4 != 0 {
+        if !self.width.is_multiple_of(self.num_heads)
+            || !(self.width / self.num_heads).is_multiple_of(4)
+        {
             return Err(ConfigError::HeadSize {
                 width: self.width,
                 num_heads: self.num_heads,

@@ -191,13 +191,13 @@ fn decode(name: &str, dtype: Dtype, data: &[u8]) -> Result<Vec<f32>, FlaxError> 
 /// `["pose_enc", "layers", "0", "qkv", "kernel"]` -> `PoseEnc.layers_0.Dense_0.kernel`.
 pub fn flax_name(path: &[String]) -> String {
     let mut parts = Vec::with_capacity(path.len());
-    let mut segments = path.iter().map(String::as_str).peekable();
+    let mut segments = path.iter().map(String::as_str);
     while let Some(segment) = segments.next() {
-        if segment == "layers" {
-            if let Some(index) = segments.next() {
-                parts.push(format!("layers_{index}"));
-                continue;
-            }
+        if segment == "layers"
+            && let Some(index) = segments.next()
+        {
+            parts.push(format!("layers_{index}"));
+            continue;
         }
         parts.push(
             match segment {
