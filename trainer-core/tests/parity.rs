@@ -4,9 +4,14 @@ mod common;
 
 use std::path::{Path, PathBuf};
 
-use burn::tensor::Device;
+use burn::tensor::{Device, Tensor};
+use trainer_core::XFactor;
 use trainer_core::backend::BackendChoice;
-use trainer_core::parity::{GRADIENT_TOLERANCE, OUTPUT_TOLERANCE, check_fixture};
+use trainer_core::flax::{FlaxTensors, PARAMS_PREFIX, load_flax};
+use trainer_core::model::PoseLatents;
+use trainer_core::parity::{
+    GRADIENT_TOLERANCE, OUTPUT_TOLERANCE, check_fixture, read_fixture_config,
+};
 
 /// Fixtures committed with this crate (made by `tools/reference`).
 fn local_fixture(name: &str) -> PathBuf {
@@ -60,9 +65,53 @@ fn tiny_fixture_matches_on_wgpu() {
 }
 
 #[test]
-fn other_sizes_match_on_cpu() {
+fn other_sizes_match_on_both_backends() {
     for name in ["xfactor-deep.safetensors", "xfactor-manyviews.safetensors"] {
         let fixture = local_fixture(name);
-        assert_parity(&fixture, &BackendChoice::Cpu.device(), name);
+        for backend in [BackendChoice::Cpu, BackendChoice::Wgpu] {
+            assert_parity(
+                &fixture,
+                &backend.device(),
+                &format!("{name}/{}", backend.name()),
+            );
+        }
     }
+}
+
+#[test]
+fn bfloat16_rounding_of_qkv_is_an_option_that_stays_close() {
+    let fixture = common::shared_fixture("xfactor-tiny.safetensors");
+    let mut config = read_fixture_config(&fixture)
+        .unwrap()
+        .model_config()
+        .unwrap();
+    let tensors = FlaxTensors::read(&fixture).unwrap();
+    let device = Device::flex();
+    let mut render = |round: bool| {
+        config.round_qkv_bf16 = round;
+        let model = load_flax(
+            XFactor::new(&config, 0, &device).unwrap(),
+            &tensors,
+            PARAMS_PREFIX,
+        )
+        .unwrap();
+        let pair: Tensor<5> = tensors.require("input.pair").unwrap().to_tensor(&device);
+        let poses = model.pose_enc.forward(pair.clone());
+        model
+            .render
+            .forward(pair.narrow(1, 0, 1), PoseLatents::Single(poses), None)
+            .try_into_vec_as::<f32>()
+            .unwrap()
+    };
+    let exact = render(false);
+    let rounded = render(true);
+    let difference = exact
+        .iter()
+        .zip(&rounded)
+        .fold(0.0f32, |m, (a, b)| m.max((a - b).abs()));
+    assert!(difference > 0.0, "rounding had no effect");
+    assert!(
+        difference < 2e-2,
+        "rounding moved the render by {difference}"
+    );
 }
