@@ -2,19 +2,22 @@
 //! benchmark configuration, and of the paper-scale model's construction and forward pass.
 //!
 //! `cargo bench -p trainer-core --bench model_step -- [--backend cpu|wgpu] [--steps N]
-//! [--batch B] [--skip-paper]`. Prints its configuration, then one `key=value` line.
+//! [--batch B] [--shards S] [--skip-paper]`; shards default to the core count. Prints its configuration, then one `key=value` line.
 
 use std::time::Instant;
 
 use burn::module::Module;
 use burn::tensor::{Device, Tensor, TensorData};
+use trainer_core::allocator;
 use trainer_core::backend::BackendChoice;
 use trainer_core::model::PoseLatents;
 use trainer_core::rng::Stream;
+use trainer_core::sharded::sharded_gradients;
 use trainer_core::{XFactor, XFactorConfig};
 
 struct Options {
     backend: BackendChoice,
+    shards: usize,
     steps: usize,
     batch: usize,
     paper: bool,
@@ -23,6 +26,7 @@ struct Options {
 fn parse_options() -> Options {
     let mut options = Options {
         backend: BackendChoice::Cpu,
+        shards: std::thread::available_parallelism().map_or(1, |n| n.get()),
         steps: 5,
         batch: 8,
         paper: true,
@@ -41,6 +45,12 @@ fn parse_options() -> Options {
             }
             "--batch" => {
                 options.batch = args.next().and_then(|v| v.parse().ok()).expect("--batch B")
+            }
+            "--shards" => {
+                options.shards = args
+                    .next()
+                    .and_then(|v| v.parse().ok())
+                    .expect("--shards N")
             }
             "--skip-paper" => options.paper = false,
             _ => {}
@@ -72,10 +82,18 @@ fn two_quadrant_mask(batch: usize, grid: usize, device: &Device) -> Tensor<2> {
     Tensor::from_data(TensorData::new(values, [batch, grid * grid]), device)
 }
 
-/// One stage-1 step; returns (forward seconds, backward seconds).
-fn stage1_step(model: &XFactor, pair: &Tensor<5>, mask: &Tensor<2>) -> (f64, f64) {
-    let [b, _, h, w, c] = pair.dims();
-    let start = Instant::now();
+/// The stage-1 L1 loss of samples `[start, start + count)`, weighted by their share of the
+/// batch so shard losses add up to the batch mean.
+fn stage1_loss(
+    model: &XFactor,
+    pair: &Tensor<5>,
+    mask: &Tensor<2>,
+    start: usize,
+    count: usize,
+) -> Tensor<1> {
+    let [batch, _, h, w, c] = pair.dims();
+    let pair = pair.clone().narrow(0, start, count);
+    let mask = mask.clone().narrow(0, start, count);
     let poses = model.pose_enc.forward_masked(pair.clone(), mask.clone());
     let swapped = Tensor::cat(
         vec![poses.clone().narrow(2, 1, 1), poses.narrow(2, 0, 1)],
@@ -84,35 +102,40 @@ fn stage1_step(model: &XFactor, pair: &Tensor<5>, mask: &Tensor<2>) -> (f64, f64
     let pred = model.render.forward(
         pair.clone().narrow(1, 0, 1),
         PoseLatents::PerSegment(swapped),
-        Some(mask.clone()),
+        Some(mask),
     );
-    let target = pair.clone().narrow(1, 1, 1).reshape([b, h, w, c]);
-    let loss = (target - pred).abs().mean();
-    let loss_value = loss.clone().into_scalar::<f32>();
-    let forward = start.elapsed().as_secs_f64();
+    let target = pair.narrow(1, 1, 1).reshape([count, h, w, c]);
+    (target - pred).abs().mean() * (count as f64 / batch as f64)
+}
+
+/// One stage-1 forward and backward pass over the batch split into `shards`; returns seconds.
+fn stage1_step(model: &XFactor, pair: &Tensor<5>, mask: &Tensor<2>, shards: usize) -> f64 {
+    let batch = pair.dims()[0];
     let start = Instant::now();
-    let grads = loss.backward();
-    let kernel_grad = model
-        .render
-        .pixel_head
-        .dense_2
-        .kernel
-        .val()
-        .grad(&grads)
+    let (loss, grads) = sharded_gradients(model, shards, |copy, shard| {
+        let begin = shard * batch / shards;
+        let end = (shard + 1) * batch / shards;
+        stage1_loss(copy, pair, mask, begin, end - begin)
+    });
+    let kernel_grad: Tensor<2> = grads
+        .get(model.render.pixel_head.dense_2.kernel.id)
         .expect("gradient reaches the pixel head");
     let grad_sum = kernel_grad.abs().sum().into_scalar::<f32>();
-    assert!(loss_value.is_finite() && grad_sum.is_finite());
-    (forward, start.elapsed().as_secs_f64())
+    assert!(loss.is_finite() && grad_sum.is_finite());
+    start.elapsed().as_secs_f64()
 }
 
 fn main() {
     let options = parse_options();
+    let tuning = allocator::keep_freed_memory();
     let config = XFactorConfig::benchmark();
     let device = options.backend.device().autodiff();
     let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
     println!(
-        "config: backend={} threads={threads} batch={} image={} patch={} width={} heads={} layers={}+{} pose_dim={} global_tokens={} steps={}",
+        "config: backend={} threads={threads} shards={} allocator_tuned={} batch={} image={} patch={} width={} heads={} layers={}+{} pose_dim={} global_tokens={} steps={}",
         options.backend.name(),
+        options.shards,
+        tuning.heap_for_large_blocks && tuning.keep_freed_top,
         options.batch,
         config.image_size,
         config.patch_size,
@@ -129,27 +152,19 @@ fn main() {
     let pair = uniform([options.batch, 2, side, side, 3], 1, &device);
     let mask = two_quadrant_mask(options.batch, config.grid_side(), &device);
 
-    let warmup = stage1_step(&model, &pair, &mask);
-    let mut forward = Vec::new();
-    let mut backward = Vec::new();
-    for _ in 0..options.steps {
-        let (f, b) = stage1_step(&model, &pair, &mask);
-        forward.push(f);
-        backward.push(b);
-    }
-    let median = |v: &mut Vec<f64>| {
-        v.sort_by(f64::total_cmp);
-        v[v.len() / 2]
-    };
-    let forward_s = median(&mut forward);
-    let backward_s = median(&mut backward);
-    let step_s = forward_s + backward_s;
+    let warmup = stage1_step(&model, &pair, &mask, options.shards);
+    let mut steps: Vec<f64> = (0..options.steps)
+        .map(|_| stage1_step(&model, &pair, &mask, options.shards))
+        .collect();
+    steps.sort_by(f64::total_cmp);
+    let step_s = steps[steps.len() / 2];
     let mut line = format!(
-        "backend={} batch={} params={} warmup_step_s={:.3} step_s={step_s:.3} forward_s={forward_s:.3} backward_s={backward_s:.3} pairs_per_s={:.2} vs_jax_0.99s={:.2}",
+        "backend={} batch={} shards={} params={} warmup_step_s={warmup:.3} step_s={step_s:.3} min_step_s={:.3} pairs_per_s={:.2} vs_jax_0.99s={:.2}",
         options.backend.name(),
         options.batch,
+        options.shards,
         model.num_params(),
-        warmup.0 + warmup.1,
+        steps[0],
         options.batch as f64 / step_s,
         step_s / 0.99,
     );

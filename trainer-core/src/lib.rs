@@ -3,6 +3,7 @@
 //! This crate knows nothing about networking: workers and the coordinator drive it through
 //! plain function calls.
 
+pub mod allocator;
 pub mod backend;
 pub mod checkpoint;
 pub mod config;
@@ -10,6 +11,7 @@ pub mod flax;
 pub mod model;
 pub mod parity;
 pub mod rng;
+pub mod sharded;
 
 pub use config::XFactorConfig;
 pub use model::XFactor;

@@ -1,0 +1,150 @@
+//! Data parallelism inside one process: a batch split into shards whose forward and backward
+//! passes run on separate threads, with their gradients summed.
+//!
+//! burn's CPU kernels for element-wise ops run on one thread, so a single backward pass keeps
+//! about one core busy; shards on separate threads use the others. The same machinery is the
+//! gradient accumulation that makes the global batch independent of what one device holds.
+
+use burn::module::{Module, ModuleMapper, ModuleVisitor, Param};
+use burn::optim::GradientsParams;
+use burn::tensor::Tensor;
+
+/// Gives every parameter of a copy its own autodiff leaf, so threads never share a graph node
+/// (shared leaves serialise, and can deadlock, concurrent backward passes). Parameter ids are
+/// kept, so gradients still match the original model's parameters.
+struct DetachParameters;
+
+impl ModuleMapper for DetachParameters {
+    fn map_float<const D: usize>(&mut self, param: Param<Tensor<D>>) -> Param<Tensor<D>> {
+        param.map(|tensor| {
+            let requires_grad = tensor.is_require_grad();
+            tensor.detach().set_require_grad(requires_grad)
+        })
+    }
+}
+
+/// Sums, parameter by parameter, the gradients of several shards.
+struct SumShards {
+    shards: Vec<GradientsParams>,
+    total: GradientsParams,
+}
+
+impl ModuleVisitor for SumShards {
+    fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
+        let sum = self
+            .shards
+            .iter_mut()
+            .filter_map(|shard| shard.remove::<D>(param.id))
+            .reduce(|sum, grad| sum + grad);
+        if let Some(sum) = sum {
+            self.total.register(param.id, sum);
+        }
+    }
+}
+
+/// Runs `shard_loss(model_copy, shard)` for `shard in 0..shards`, each on its own thread, and
+/// returns the sum of the losses and of their gradients with respect to `model`'s parameters.
+///
+/// Each closure call must return its shard's contribution to the total loss (for a mean over the
+/// batch: the shard's mean times its share of the samples), so the sum is the loss of the whole
+/// batch and the gradients equal one backward pass over it. Shard `i`'s work depends only on
+/// `i`, never on which thread runs it.
+pub fn sharded_gradients<M, F>(model: &M, shards: usize, shard_loss: F) -> (f32, GradientsParams)
+where
+    M: Module,
+    F: Fn(&M, usize) -> Tensor<1> + Sync,
+{
+    let shards = shards.max(1);
+    let results: Vec<(f32, GradientsParams)> = std::thread::scope(|scope| {
+        let handles: Vec<_> = (0..shards)
+            .map(|shard| {
+                let copy = model.clone().map(&mut DetachParameters);
+                let shard_loss = &shard_loss;
+                scope.spawn(move || {
+                    let loss = shard_loss(&copy, shard);
+                    let value = loss.clone().into_scalar::<f32>();
+                    let grads = GradientsParams::from_grads(loss.backward(), &copy);
+                    (value, grads)
+                })
+            })
+            .collect();
+        handles
+            .into_iter()
+            .map(|handle| match handle.join() {
+                Ok(result) => result,
+                Err(panic) => std::panic::resume_unwind(panic),
+            })
+            .collect()
+    });
+    let loss = results.iter().map(|(value, _)| value).sum();
+    let mut sum = SumShards {
+        shards: results.into_iter().map(|(_, grads)| grads).collect(),
+        total: GradientsParams::new(),
+    };
+    model.visit(&mut sum);
+    (loss, sum.total)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::model::PoseLatents;
+    use crate::rng::Stream;
+    use crate::{XFactor, XFactorConfig};
+    use burn::tensor::{Device, TensorData};
+
+    #[test]
+    fn two_shards_give_the_gradients_of_one_batch() {
+        let config = XFactorConfig {
+            image_size: 16,
+            patch_size: 4,
+            width: 32,
+            num_heads: 2,
+            pose_layers: 1,
+            render_layers: 1,
+            pose_dim: 8,
+            global_tokens: 2,
+            round_qkv_bf16: false,
+        };
+        let device = Device::flex().autodiff();
+        let model = XFactor::new(&config, 5, &device).unwrap();
+        let batch = 4;
+        let mut stream = Stream::new(&[11]);
+        let values: Vec<f32> = (0..batch * 2 * 16 * 16 * 3)
+            .map(|_| stream.uniform_in(-1.0, 1.0) as f32)
+            .collect();
+        let pair = Tensor::<5>::from_data(TensorData::new(values, [batch, 2, 16, 16, 3]), &device);
+        let loss_of = |model: &XFactor, start: usize, count: usize| {
+            let pair = pair.clone().narrow(0, start, count);
+            let poses = model.pose_enc.forward(pair.clone());
+            let image = model.render.forward(
+                pair.clone().narrow(1, 0, 1),
+                PoseLatents::Single(poses),
+                None,
+            );
+            let target = pair.narrow(1, 1, 1).reshape([count, 16, 16, 3]);
+            (target - image).abs().mean() * (count as f64 / batch as f64)
+        };
+        let (whole_loss, whole) = sharded_gradients(&model, 1, |m, _| loss_of(m, 0, batch));
+        let (split_loss, split) = sharded_gradients(&model, 2, |m, i| loss_of(m, 2 * i, 2));
+        assert!((whole_loss - split_loss).abs() < 1e-6);
+        let kernel = |grads: &GradientsParams| -> Vec<f32> {
+            grads
+                .get::<2>(model.pose_enc.layers[0].qkv.kernel.id)
+                .unwrap()
+                .try_into_vec_as::<f32>()
+                .unwrap()
+        };
+        let (a, b) = (kernel(&whole), kernel(&split));
+        let scale = a.iter().fold(0.0f32, |m, v| m.max(v.abs()));
+        let error = a
+            .iter()
+            .zip(&b)
+            .fold(0.0f32, |m, (x, y)| m.max((x - y).abs()));
+        assert!(
+            scale > 0.0 && error <= 1e-5 * scale,
+            "error {error} of {scale}"
+        );
+        assert_eq!(whole.len(), split.len());
+    }
+}
