@@ -8,6 +8,7 @@ pub mod backend;
 pub mod checkpoint;
 pub mod config;
 pub mod flax;
+pub mod lpips;
 pub mod model;
 pub mod parity;
 pub mod rng;
