@@ -129,24 +129,20 @@ pub struct ParityReport {
 impl ParityReport {
     /// The largest output error.
     pub fn worst_output(&self) -> (&str, f32) {
-        self.output_errors
-            .iter()
-            .map(|(name, e)| (name.as_str(), *e))
-            .fold(
-                ("", 0.0),
-                |worst, cur| if cur.1 > worst.1 { cur } else { worst },
-            )
+        worst(
+            self.output_errors
+                .iter()
+                .map(|(name, e)| (name.as_str(), *e)),
+        )
     }
 
     /// The largest relative gradient error.
     pub fn worst_gradient(&self) -> (&str, f32) {
-        self.gradient_errors
-            .iter()
-            .map(|(name, e)| (name.as_str(), *e))
-            .fold(
-                ("", 0.0),
-                |worst, cur| if cur.1 > worst.1 { cur } else { worst },
-            )
+        worst(
+            self.gradient_errors
+                .iter()
+                .map(|(name, e)| (name.as_str(), *e)),
+        )
     }
 
     /// Whether every output, every gradient and the reference pose are within tolerance.
@@ -160,6 +156,15 @@ impl ParityReport {
                 .all(|e| *e <= GRADIENT_TOLERANCE)
             && self.reference_pose_max_abs == 0.0
     }
+}
+
+fn worst<'a>(errors: impl Iterator<Item = (&'a str, f32)>) -> (&'a str, f32) {
+    errors.fold(
+        ("", 0.0),
+        |worst, current| {
+            if current.1 > worst.1 { current } else { worst }
+        },
+    )
 }
 
 /// Reads the configuration JSON beside `fixture` (same stem, `.json`).
@@ -273,10 +278,8 @@ fn run_fixture_calls(
         PoseLatents::PerSegment(swapped),
         Some(mask),
     );
-    let pose_full = model.pose_enc.forward(pair);
-    let render_full = model
-        .render
-        .forward(context, PoseLatents::Single(pose_full.clone()), None);
+    let pose_full = model.pose_enc.forward(pair.clone());
+    let render_full = model.render_pair(pair);
     let render_mv = model
         .render
         .forward(context_mv, PoseLatents::Single(pose_mv), None);

@@ -8,7 +8,6 @@ use burn::tensor::{Device, Tensor};
 use trainer_core::XFactor;
 use trainer_core::backend::BackendChoice;
 use trainer_core::flax::{FlaxTensors, PARAMS_PREFIX, load_flax};
-use trainer_core::model::PoseLatents;
 use trainer_core::parity::{
     GRADIENT_TOLERANCE, OUTPUT_TOLERANCE, check_fixture, read_fixture_config,
 };
@@ -96,12 +95,7 @@ fn bfloat16_rounding_of_qkv_is_an_option_that_stays_close() {
         )
         .unwrap();
         let pair: Tensor<5> = tensors.require("input.pair").unwrap().to_tensor(&device);
-        let poses = model.pose_enc.forward(pair.clone());
-        model
-            .render
-            .forward(pair.narrow(1, 0, 1), PoseLatents::Single(poses), None)
-            .try_into_vec_as::<f32>()
-            .unwrap()
+        model.render_pair(pair).try_into_vec_as::<f32>().unwrap()
     };
     let exact = render(false);
     let rounded = render(true);

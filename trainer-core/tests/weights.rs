@@ -9,7 +9,6 @@ use burn::tensor::{Device, Tensor, TensorData};
 use safetensors::SafeTensors;
 use safetensors::tensor::TensorView;
 use trainer_core::flax::{FlaxTensors, PARAMS_PREFIX, load_flax};
-use trainer_core::model::PoseLatents;
 use trainer_core::rng::Stream;
 use trainer_core::{XFactor, XFactorConfig, checkpoint};
 
@@ -109,12 +108,7 @@ fn render_once(model: &XFactor, device: &Device) -> Vec<f32> {
         .map(|_| stream.uniform_in(-1.0, 1.0) as f32)
         .collect();
     let pair = Tensor::<5>::from_data(TensorData::new(values, [1, 2, side, side, 3]), device);
-    let poses = model.pose_enc.forward(pair.clone());
-    model
-        .render
-        .forward(pair.narrow(1, 0, 1), PoseLatents::Single(poses), None)
-        .try_into_vec_as::<f32>()
-        .unwrap()
+    model.render_pair(pair).try_into_vec_as::<f32>().unwrap()
 }
 
 #[test]

@@ -17,7 +17,7 @@ pub use render::{PoseLatents, Render};
 pub use rope::RopeTable;
 
 use burn::module::Module;
-use burn::tensor::Device;
+use burn::tensor::{Device, Tensor};
 
 use crate::config::{ConfigError, XFactorConfig};
 
@@ -39,5 +39,14 @@ impl XFactor {
         let pose_enc = PoseEnc::new(config, &mut init);
         let render = Render::new(config, &mut init);
         Ok(Self { pose_enc, render })
+    }
+
+    /// Renders each pair's second view from its first, with both poses read from the unmasked
+    /// pair: `pair (B, 2, H, W, 3)` -> `(B, H, W, 3)`. This is plain autoencoding and the
+    /// fixture's `render_full`.
+    pub fn render_pair(&self, pair: Tensor<5>) -> Tensor<4> {
+        let poses = self.pose_enc.forward(pair.clone());
+        self.render
+            .forward(pair.narrow(1, 0, 1), PoseLatents::Single(poses), None)
     }
 }
