@@ -10,6 +10,7 @@ pub mod config;
 pub mod flax;
 pub mod lpips;
 pub mod model;
+pub mod optim;
 pub mod parity;
 pub mod rng;
 pub mod sharded;
