@@ -4,6 +4,7 @@
 //! plain function calls.
 
 pub mod allocator;
+pub mod augment;
 pub mod backend;
 pub mod checkpoint;
 pub mod config;
