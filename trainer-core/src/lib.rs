@@ -11,6 +11,7 @@ pub mod config;
 pub mod flax;
 pub mod lpips;
 pub mod model;
+pub mod objective;
 pub mod optim;
 pub mod parity;
 pub mod rng;
