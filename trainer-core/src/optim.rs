@@ -71,7 +71,8 @@ pub struct AdamWConfig {
     pub weight_decay: f64,
     /// Clip gradients to this global norm (over all parameters together).
     pub clip_norm: Option<f64>,
-    /// Skip the whole update when the pre-clip global norm exceeds this (E-RayZer uses 5.0).
+    /// Skip the whole update when the pre-clip global norm exceeds this or is NaN (E-RayZer
+    /// uses 5.0).
     pub skip_norm_above: Option<f64>,
 }
 
@@ -150,7 +151,7 @@ impl AdamW {
         if self
             .config
             .skip_norm_above
-            .is_some_and(|limit| !(grad_norm <= limit))
+            .is_some_and(|limit| grad_norm > limit || grad_norm.is_nan())
         {
             return (
                 model,
