@@ -1,17 +1,21 @@
-//! Stage 1: the stereo-monocular transferability objective.
+//! The two training objectives: stage 1 (stereo-monocular transferability) and stage 2
+//! (multi-view fine-tune). Both reduce to one computation over an [`ObjectiveBatch`]: PoseEnc on
+//! `(reference, view)` pairs, slot copy and swap, Render of the clean context views,
+//! `L1 + w * LPIPS`. Stage 1 is the case of one context view.
 //!
 //! Every random choice for global sample `i` of step `s` comes from a stream keyed by
 //! `(seed, s, i)`, so which process or thread builds a sample never changes it.
 
 use burn::tensor::{Device, Tensor, TensorData};
 
-use crate::augment::{AugmentConfig, Image};
+use crate::augment::{AugmentConfig, Augmentation, Image};
 use crate::lpips::Lpips;
 use crate::model::{PoseLatents, XFactor};
 use crate::rng::Stream;
 
-/// Tag that separates stage-1 draws from every other use of the same `(seed, step, sample)`.
+/// Tags that separate each stage's draws from every other use of `(seed, step, sample)`.
 const STAGE1_STREAM: u64 = 0x5354_4147_4531;
+const STAGE2_STREAM: u64 = 0x5354_4147_4532;
 
 /// Stage-1 probabilities (defaults: the paper's) and the augmentation of PoseEnc's input.
 #[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
@@ -81,7 +85,7 @@ pub struct Stage1Draw {
     /// Quadrants in segment 1.
     pub mask: QuadrantMask,
     /// Photometric augmentation of both frames as PoseEnc sees them.
-    pub augmentation: crate::augment::Augmentation,
+    pub augmentation: Augmentation,
 }
 
 impl Stage1Config {
@@ -101,8 +105,8 @@ impl Stage1Config {
         }
     }
 
-    /// Assembles the tensors of one (micro-)batch from `(context, target)` frame pairs whose
-    /// first element is global sample `first_sample` of `step`.
+    /// Assembles one (micro-)batch from `(context, target)` frame pairs whose first element is
+    /// global sample `first_sample` of `step`.
     pub fn batch(
         &self,
         pairs: &[(Image, Image)],
@@ -111,49 +115,101 @@ impl Stage1Config {
         first_sample: u64,
         patch_size: usize,
         device: &Device,
-    ) -> Stage1Batch {
-        let count = pairs.len();
-        let (height, width) = pairs
-            .first()
-            .map_or((0, 0), |(image, _)| (image.height, image.width));
-        let grid = height / patch_size.max(1);
-        let mut encoder = Vec::with_capacity(count * 2 * height * width * 3);
-        let mut context = Vec::with_capacity(count * height * width * 3);
-        let mut target = Vec::with_capacity(count * height * width * 3);
-        let mut mask = Vec::with_capacity(count * grid * grid);
-        let mut copy = Vec::with_capacity(count);
+    ) -> ObjectiveBatch {
+        let mut builder = BatchBuilder::new(2, patch_size);
         for (offset, (first, second)) in pairs.iter().enumerate() {
             let draw = self.draw(seed, step, first_sample + offset as u64);
-            let second = if draw.self_decode { first } else { second };
-            encoder.extend(draw.augmentation.apply(first).pixels);
-            encoder.extend(draw.augmentation.apply(second).pixels);
-            context.extend_from_slice(&first.pixels);
-            target.extend_from_slice(&second.pixels);
-            mask.extend(draw.mask.patch_mask(grid));
-            copy.push(f32::from(u8::from(draw.mask.is_empty())));
+            let target = if draw.self_decode { first } else { second };
+            builder.push(&[first, target], &draw.mask, &draw.augmentation);
         }
-        Stage1Batch {
-            encoder_pair: Tensor::from_data(
-                TensorData::new(encoder, [count, 2, height, width, 3]),
+        builder.finish(device)
+    }
+}
+
+/// Collects samples of `views` ordered frames (reference first, target last) into host buffers.
+struct BatchBuilder {
+    views: usize,
+    patch_size: usize,
+    shape: Option<(usize, usize)>,
+    samples: usize,
+    encoder_pairs: Vec<f32>,
+    context: Vec<f32>,
+    target: Vec<f32>,
+    encoder_mask: Vec<f32>,
+    mask: Vec<f32>,
+    copy_slot: Vec<f32>,
+}
+
+impl BatchBuilder {
+    fn new(views: usize, patch_size: usize) -> Self {
+        Self {
+            views,
+            patch_size,
+            shape: None,
+            samples: 0,
+            encoder_pairs: Vec::new(),
+            context: Vec::new(),
+            target: Vec::new(),
+            encoder_mask: Vec::new(),
+            mask: Vec::new(),
+            copy_slot: Vec::new(),
+        }
+    }
+
+    /// Adds one sample: `frames` ordered reference first, target last.
+    fn push(&mut self, frames: &[&Image], mask: &QuadrantMask, augmentation: &Augmentation) {
+        let reference = frames[0];
+        self.shape = Some((reference.height, reference.width));
+        let augmented: Vec<Image> = frames.iter().map(|f| augmentation.apply(f)).collect();
+        let grid = reference.height / self.patch_size.max(1);
+        let patch_mask = mask.patch_mask(grid);
+        for view in &augmented[1..] {
+            self.encoder_pairs.extend_from_slice(&augmented[0].pixels);
+            self.encoder_pairs.extend_from_slice(&view.pixels);
+            self.encoder_mask.extend_from_slice(&patch_mask);
+        }
+        for frame in &frames[..self.views - 1] {
+            self.context.extend_from_slice(&frame.pixels);
+        }
+        self.target
+            .extend_from_slice(&frames[self.views - 1].pixels);
+        self.mask.extend(patch_mask);
+        self.copy_slot.push(f32::from(u8::from(mask.is_empty())));
+        self.samples += 1;
+    }
+
+    fn finish(self, device: &Device) -> ObjectiveBatch {
+        let (height, width) = self.shape.unwrap_or((0, 0));
+        let (b, contexts) = (self.samples, self.views - 1);
+        let tokens = self.mask.len() / b.max(1);
+        ObjectiveBatch {
+            encoder_pairs: upload(
+                self.encoder_pairs,
+                [b * contexts, 2, height, width, 3],
                 device,
             ),
-            context: Tensor::from_data(
-                TensorData::new(context, [count, 1, height, width, 3]),
-                device,
-            ),
-            target: Tensor::from_data(TensorData::new(target, [count, height, width, 3]), device),
-            mask: Tensor::from_data(TensorData::new(mask, [count, grid * grid]), device),
-            copy_slot: Tensor::from_data(TensorData::new(copy, [count, 1, 1, 1]), device),
+            encoder_mask: upload(self.encoder_mask, [b * contexts, tokens], device),
+            context: upload(self.context, [b, contexts, height, width, 3], device),
+            target: upload(self.target, [b, height, width, 3], device),
+            mask: upload(self.mask, [b, tokens], device),
+            copy_slot: upload(self.copy_slot, [b, 1, 1, 1], device),
         }
     }
 }
 
-/// The tensors of one stage-1 batch.
+fn upload<const D: usize>(values: Vec<f32>, shape: [usize; D], device: &Device) -> Tensor<D> {
+    Tensor::from_data(TensorData::new(values, shape), device)
+}
+
+/// The tensors of one batch of either stage, `V` views per sample (reference first, target
+/// last).
 #[derive(Debug, Clone)]
-pub struct Stage1Batch {
-    /// Augmented `(context, target)` as PoseEnc sees them, `(B, 2, H, W, 3)`.
-    pub encoder_pair: Tensor<5>,
-    /// The un-augmented context frame, `(B, 1, H, W, 3)`.
+pub struct ObjectiveBatch {
+    /// Augmented `(reference, view_i)` pairs for `i = 1..V`, `(B * (V-1), 2, H, W, 3)`.
+    pub encoder_pairs: Tensor<5>,
+    /// The sample's patch mask repeated for each of its pairs, `(B * (V-1), T)`.
+    pub encoder_mask: Tensor<2>,
+    /// The un-augmented context views (reference first), `(B, V-1, H, W, 3)`.
     pub context: Tensor<5>,
     /// The frame to reconstruct, `(B, H, W, 3)`.
     pub target: Tensor<4>,
@@ -171,9 +227,9 @@ pub fn swap_slots(latents: Tensor<4>) -> Tensor<4> {
     )
 }
 
-/// The pieces of one stage-1 loss evaluation.
+/// The pieces of one loss evaluation.
 #[derive(Debug, Clone)]
-pub struct Stage1Loss {
+pub struct ObjectiveLoss {
     /// `mean |target - pred|`.
     pub l1: Tensor<1>,
     /// Mean LPIPS distance, when an LPIPS network is given.
@@ -182,17 +238,24 @@ pub struct Stage1Loss {
     pub total: Tensor<1>,
 }
 
-/// Runs the stage-1 objective on a batch: PoseEnc on the augmented pair with the mask, slot
-/// copy for unmasked samples, slot swap, Render of the clean context, `L1 + w * LPIPS`.
-pub fn stage1_loss(
+/// Runs either stage's objective on a batch: PoseEnc on every `(reference, view)` pair with the
+/// mask, the reference's latent set to exactly zero (what PoseEnc itself returns for view 0),
+/// slot copy for unmasked samples, slot swap, Render of the clean context, `L1 + w * LPIPS`.
+pub fn objective_loss(
     model: &XFactor,
     lpips: Option<&Lpips>,
     lpips_weight: f64,
-    batch: &Stage1Batch,
-) -> Stage1Loss {
-    let latents = model
+    batch: &ObjectiveBatch,
+) -> ObjectiveLoss {
+    let [b, contexts, _, _, _] = batch.context.dims();
+    let pair_latents = model
         .pose_enc
-        .forward_masked(batch.encoder_pair.clone(), batch.mask.clone());
+        .forward_masked(batch.encoder_pairs.clone(), batch.encoder_mask.clone());
+    let [_, _, _, pose_dim] = pair_latents.dims();
+    let views = pair_latents
+        .narrow(1, 1, 1)
+        .reshape([b, contexts, 2, pose_dim]);
+    let latents = Tensor::cat(vec![views.zeros_like().narrow(1, 0, 1), views], 1);
     let slot0 = latents.clone().narrow(2, 0, 1);
     let slot1 = latents.narrow(2, 1, 1);
     let copy = batch.copy_slot.clone();
@@ -209,7 +272,118 @@ pub fn stage1_loss(
         Some(distance) if lpips_weight != 0.0 => l1.clone() + distance.clone() * lpips_weight,
         _ => l1.clone(),
     };
-    Stage1Loss { l1, lpips, total }
+    ObjectiveLoss { l1, lpips, total }
+}
+
+/// Stage-2 settings (defaults: the paper's).
+#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct Stage2Config {
+    /// Frames per sample: context views plus the target.
+    pub views: usize,
+    /// Probability that the target is replaced by a random context frame.
+    pub self_decode_probability: f64,
+    /// Probability that no quadrant is marked.
+    pub unmasked_probability: f64,
+    /// Weight of LPIPS in the loss.
+    pub lpips_weight: f64,
+    /// Photometric augmentation of PoseEnc's input.
+    pub augment: AugmentConfig,
+}
+
+impl Default for Stage2Config {
+    fn default() -> Self {
+        Self {
+            views: 6,
+            self_decode_probability: 0.02,
+            unmasked_probability: 0.05,
+            lpips_weight: 0.5,
+            augment: AugmentConfig::default(),
+        }
+    }
+}
+
+/// Everything drawn for one stage-2 sample.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Stage2Draw {
+    /// Positions into the sample's frames in model order: the "middlest" frame first, the rest
+    /// shuffled, the last one the target.
+    pub order: Vec<usize>,
+    /// When the target is replaced, the context position (into `order`) that replaces it.
+    pub self_decode_from: Option<usize>,
+    /// Quadrants in segment 1.
+    pub mask: QuadrantMask,
+    /// Photometric augmentation of every frame as PoseEnc sees them.
+    pub augmentation: Augmentation,
+}
+
+impl Stage2Config {
+    /// The draws of global sample `sample` at `step`, for frames with these indices into their
+    /// video (any order).
+    pub fn draw(&self, seed: u64, step: u64, sample: u64, frame_indices: &[u64]) -> Stage2Draw {
+        let mut stream = Stream::new(&[seed, STAGE2_STREAM, step, sample]);
+        let mut sorted: Vec<usize> = (0..frame_indices.len()).collect();
+        sorted.sort_by_key(|&i| frame_indices[i]);
+        let reference = middlest(frame_indices);
+        let mut order = vec![reference];
+        order.extend(sorted.into_iter().filter(|&i| i != reference));
+        for i in (2..order.len()).rev() {
+            let j = 1 + stream.below(i as u64) as usize;
+            order.swap(i, j);
+        }
+        let self_decode = stream.bernoulli(self.self_decode_probability);
+        let contexts = order.len().saturating_sub(1).max(1) as u64;
+        let replacement = stream.below(contexts) as usize;
+        let unmasked = stream.bernoulli(self.unmasked_probability);
+        let pair = QuadrantMask::PAIRS[stream.below(6) as usize];
+        let augmentation = self.augment.draw(&mut stream);
+        Stage2Draw {
+            order,
+            self_decode_from: self_decode.then_some(replacement),
+            mask: QuadrantMask {
+                marked: if unmasked { [false; 4] } else { pair },
+            },
+            augmentation,
+        }
+    }
+
+    /// Assembles one (micro-)batch from samples of `views` frames, each `(frame index in its
+    /// video, image)`, the first sample being global sample `first_sample` of `step`.
+    pub fn batch(
+        &self,
+        samples: &[Vec<(u64, Image)>],
+        seed: u64,
+        step: u64,
+        first_sample: u64,
+        patch_size: usize,
+        device: &Device,
+    ) -> ObjectiveBatch {
+        let mut builder = BatchBuilder::new(self.views, patch_size);
+        for (offset, frames) in samples.iter().enumerate() {
+            let indices: Vec<u64> = frames.iter().map(|(index, _)| *index).collect();
+            let draw = self.draw(seed, step, first_sample + offset as u64, &indices);
+            let mut ordered: Vec<&Image> = draw.order.iter().map(|&i| &frames[i].1).collect();
+            if let Some(source) = draw.self_decode_from {
+                let last = ordered.len() - 1;
+                ordered[last] = ordered[source];
+            }
+            builder.push(&ordered, &draw.mask, &draw.augmentation);
+        }
+        builder.finish(device)
+    }
+}
+
+/// The position of the frame with the smallest `max(|f - first|, |f - last|)`, where `first`
+/// and `last` are the smallest and largest frame indices (the window's ends).
+pub fn middlest(frame_indices: &[u64]) -> usize {
+    let first = frame_indices.iter().copied().min().unwrap_or(0);
+    let last = frame_indices.iter().copied().max().unwrap_or(0);
+    (0..frame_indices.len())
+        .min_by_key(|&i| {
+            let f = frame_indices[i];
+            (f - first).max(last - f)
+        })
+        .unwrap_or(0)
 }
 
 #[cfg(test)]
@@ -268,6 +442,36 @@ mod tests {
             1.0, 1.0, 0.0, 0.0,
         ];
         assert_eq!(grid, expected);
+    }
+
+    #[test]
+    fn stage2_orders_middlest_first_and_shuffles_the_rest() {
+        // Ends 3 and 30: frame 20 is at most 17 from either end, frame 12 up to 18.
+        assert_eq!(middlest(&[10, 3, 20, 12, 5, 30]), 2);
+        assert_eq!(middlest(&[0, 1]), 0);
+        let config = Stage2Config::default();
+        let indices = [40u64, 0, 7, 22, 13, 30];
+        let (mut replaced, draws) = (0usize, 20_000u64);
+        let mut target_counts = [0usize; 6];
+        for sample in 0..draws {
+            let draw = config.draw(3, 9, sample, &indices);
+            assert_eq!(draw.order[0], 3, "frame 22 is the middlest of 0..40");
+            let mut sorted = draw.order.clone();
+            sorted.sort_unstable();
+            assert_eq!(sorted, vec![0, 1, 2, 3, 4, 5]);
+            target_counts[*draw.order.last().unwrap()] += 1;
+            if let Some(source) = draw.self_decode_from {
+                assert!(source < 5);
+                replaced += 1;
+            }
+        }
+        let rate = replaced as f64 / draws as f64;
+        assert!((rate - 0.02).abs() < 0.004, "{rate}");
+        assert_eq!(target_counts[3], 0);
+        for (position, count) in target_counts.iter().enumerate().filter(|(p, _)| *p != 3) {
+            let share = *count as f64 / draws as f64;
+            assert!((share - 0.2).abs() < 0.015, "position {position}: {share}");
+        }
     }
 
     #[test]

@@ -1,11 +1,16 @@
-//! The stage-1 objective and the optimiser together: the loss falls on a toy problem.
+//! Both objectives with the model and the optimiser: the stage-1 loss falls on a toy problem,
+//! stage 1 through the shared path equals the direct computation, stage 2 reaches every
+//! parameter.
 
 mod common;
 
+use burn::module::Module;
 use burn::tensor::Device;
+use burn::tensor::Tensor;
 use trainer_core::augment::Image;
 use trainer_core::lpips::Lpips;
-use trainer_core::objective::{Stage1Config, stage1_loss};
+use trainer_core::model::PoseLatents;
+use trainer_core::objective::{Stage1Config, Stage2Config, objective_loss, swap_slots};
 use trainer_core::optim::{AdamW, AdamWConfig, Schedule};
 use trainer_core::rng::Stream;
 use trainer_core::sharded::sharded_gradients;
@@ -78,7 +83,7 @@ fn stage1_loss_falls_with_adamw() {
                 config.patch_size,
                 &device,
             );
-            stage1_loss(copy, None, 0.0, &batch).total * 0.5
+            objective_loss(copy, None, 0.0, &batch).total * 0.5
         });
         let (updated, report) = optimizer.step(model, &grads, schedule.learning_rate(step));
         assert!(report.applied && report.grad_norm.is_finite());
@@ -106,10 +111,77 @@ fn lpips_term_enters_the_loss() {
         .map(|_| sliding_pair(&mut Stream::new(&[1])))
         .collect();
     let batch = objective.batch(&pairs, 0, 0, 0, config.patch_size, &device);
-    let loss = stage1_loss(&model, Some(&lpips), 0.5, &batch);
+    let loss = objective_loss(&model, Some(&lpips), 0.5, &batch);
     let l1 = loss.l1.into_scalar::<f32>();
     let distance = loss.lpips.expect("LPIPS given").into_scalar::<f32>();
     let total = loss.total.into_scalar::<f32>();
     assert!(distance > 0.0 && distance.is_finite());
     assert!((total - (l1 + 0.5 * distance)).abs() < 1e-6);
+}
+
+#[test]
+fn shared_path_equals_the_direct_stage1_computation() {
+    let device = Device::flex();
+    let config = tiny_config();
+    let model = XFactor::new(&config, 3, &device).unwrap();
+    let objective = Stage1Config::default();
+    let mut stream = Stream::new(&[5]);
+    let pairs: Vec<_> = (0..4).map(|_| sliding_pair(&mut stream)).collect();
+    // A sample whose draw marks two quadrants, so the mask and the swap both matter.
+    let sample = (0..100)
+        .find(|&s| !objective.draw(0, 0, s).mask.is_empty())
+        .unwrap();
+    let batch = objective.batch(&pairs[..1], 0, 0, sample, config.patch_size, &device);
+    let shared = objective_loss(&model, None, 0.0, &batch)
+        .l1
+        .into_scalar::<f32>();
+    let latents = model
+        .pose_enc
+        .forward_masked(batch.encoder_pairs.clone(), batch.mask.clone());
+    let prediction = model.render.forward(
+        batch.context.clone(),
+        PoseLatents::PerSegment(swap_slots(latents)),
+        Some(batch.mask.clone()),
+    );
+    let direct = (batch.target.clone() - prediction)
+        .abs()
+        .mean()
+        .into_scalar::<f32>();
+    assert!((shared - direct).abs() <= 1e-7, "{shared} vs {direct}");
+}
+
+#[test]
+fn stage2_loss_reaches_every_parameter() {
+    let device = Device::flex().autodiff();
+    let config = tiny_config();
+    let model = XFactor::new(&config, 4, &device).unwrap();
+    let objective = Stage2Config {
+        lpips_weight: 0.0,
+        ..Stage2Config::default()
+    };
+    let mut stream = Stream::new(&[8]);
+    let samples: Vec<Vec<(u64, Image)>> = (0..2)
+        .map(|_| {
+            (0..6u64)
+                .map(|frame| (frame * 3, sliding_pair(&mut stream).1))
+                .collect()
+        })
+        .collect();
+    let batch = objective.batch(&samples, 0, 1, 0, config.patch_size, &device);
+    assert_eq!(batch.context.dims(), [2, 5, SIDE, SIDE, 3]);
+    assert_eq!(batch.encoder_pairs.dims(), [10, 2, SIDE, SIDE, 3]);
+    let loss = objective_loss(&model, None, 0.0, &batch).total;
+    assert!(loss.clone().into_scalar::<f32>().is_finite());
+    let grads = loss.backward();
+    let mut missing = 0;
+    struct Count<'a>(&'a burn::tensor::Gradients, &'a mut usize);
+    impl burn::module::ModuleVisitor for Count<'_> {
+        fn visit_float<const D: usize>(&mut self, param: &burn::module::Param<Tensor<D>>) {
+            if param.val().grad(self.0).is_none() {
+                *self.1 += 1;
+            }
+        }
+    }
+    model.visit(&mut Count(&grads, &mut missing));
+    assert_eq!(missing, 0, "parameters without a gradient");
 }
