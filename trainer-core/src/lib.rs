@@ -16,6 +16,7 @@ pub mod optim;
 pub mod parity;
 pub mod rng;
 pub mod sharded;
+pub mod trainer;
 
 pub use config::XFactorConfig;
 pub use model::XFactor;

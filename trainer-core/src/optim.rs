@@ -12,7 +12,7 @@ use burn::optim::GradientsParams;
 use burn::tensor::Tensor;
 use serde::{Deserialize, Serialize};
 
-use crate::flax::flax_name;
+use crate::flax::{FlaxError, FlaxTensors, HostTensor, flax_name};
 
 /// Linear warm-up then cosine decay, as `optax.warmup_cosine_decay_schedule`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -181,6 +181,101 @@ impl AdamW {
                 applied: true,
             },
         )
+    }
+}
+
+impl AdamW {
+    /// Both moments of every parameter, named `first.<flax name>` / `second.<flax name>`, so the
+    /// state survives a rebuild of the model (which gives parameters new ids).
+    pub fn export_moments<M: Module>(&self, model: &M) -> Vec<(String, HostTensor)> {
+        let mut names = ParamNames::default();
+        model.visit(&mut names);
+        let mut out = Vec::new();
+        for (id, name, shape) in names.params {
+            if let Some(state) = self.moments.get(&id) {
+                for (prefix, tensor) in [("first", &state.first), ("second", &state.second)] {
+                    let mut host = HostTensor::from_tensor(tensor.clone());
+                    host.shape = shape.clone();
+                    out.push((format!("{prefix}.{name}"), host));
+                }
+            }
+        }
+        out
+    }
+
+    /// Restores moments written by [`AdamW::export_moments`] for `model`'s parameters, and the
+    /// update count; a missing or misshapen moment is an error naming it.
+    pub fn import_moments<M: Module>(
+        &mut self,
+        model: &M,
+        tensors: &FlaxTensors,
+        updates: u64,
+    ) -> Result<(), FlaxError> {
+        let mut names = ParamNames::default();
+        model.visit(&mut names);
+        let device = names.device.unwrap_or_default();
+        self.moments.clear();
+        self.updates = updates;
+        if updates == 0 {
+            return Ok(());
+        }
+        for (id, name, shape) in names.params {
+            let fetch = |prefix: &str| -> Result<Tensor<1>, FlaxError> {
+                let key = format!("{prefix}.{name}");
+                let stored = tensors.get(&key).ok_or_else(|| FlaxError::Missing {
+                    name: key.clone(),
+                    expected: shape.clone(),
+                })?;
+                if stored.shape != shape {
+                    return Err(FlaxError::Shape {
+                        name: key,
+                        expected: shape.clone(),
+                        found: stored.shape.clone(),
+                    });
+                }
+                let flat = HostTensor {
+                    shape: vec![stored.values.len()],
+                    values: stored.values.clone(),
+                };
+                Ok(flat.to_tensor::<1>(&device))
+            };
+            let first = fetch("first")?;
+            let second = fetch("second")?;
+            self.moments.insert(id, Moments { first, second });
+        }
+        Ok(())
+    }
+}
+
+/// Every float parameter's id, flax name and shape, in visiting order.
+#[derive(Default)]
+struct ParamNames {
+    path: Vec<String>,
+    params: Vec<(ParamId, String, Vec<usize>)>,
+    device: Option<burn::tensor::Device>,
+}
+
+impl ModuleVisitor for ParamNames {
+    fn enter_module(&mut self, name: &str, _container_type: &str) {
+        self.path.push(name.to_string());
+    }
+
+    fn exit_module(&mut self, _name: &str, _container_type: &str) {
+        self.path.pop();
+    }
+
+    fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
+        let value = param.val();
+        if self.device.is_none() {
+            let device = value.device();
+            self.device = Some(if value.is_autodiff() {
+                value.clone().inner().device()
+            } else {
+                device
+            });
+        }
+        self.params
+            .push((param.id, flax_name(&self.path), value.dims().to_vec()));
     }
 }
 

@@ -42,6 +42,21 @@ impl ModuleVisitor for SumShards {
     }
 }
 
+/// Adds two sets of gradients of `model`'s parameters (gradient accumulation across
+/// micro-batches).
+pub fn add_gradients<M: Module>(
+    model: &M,
+    first: GradientsParams,
+    second: GradientsParams,
+) -> GradientsParams {
+    let mut sum = SumShards {
+        shards: vec![first, second],
+        total: GradientsParams::new(),
+    };
+    model.visit(&mut sum);
+    sum.total
+}
+
 /// Runs `shard_loss(model_copy, shard)` for `shard in 0..shards`, each on its own thread, and
 /// returns the sum of the losses and of their gradients with respect to `model`'s parameters.
 ///

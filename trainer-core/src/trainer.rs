@@ -1,0 +1,392 @@
+//! The single-process trainer: one stage of XFactor training over a [`BatchSource`], with
+//! checkpoints that resume exactly.
+//!
+//! A checkpoint directory holds `model.safetensors` + `model.json` (weights and model config),
+//! `optimizer.safetensors` (AdamW moments by flax name) and `state.json` (step, update count,
+//! seed). Every random draw is keyed by `(seed, step, sample)`, so the step number is the whole
+//! RNG position and resuming needs nothing else.
+
+use std::path::{Path, PathBuf};
+
+use burn::optim::GradientsParams;
+use burn::tensor::Device;
+use serde::{Deserialize, Serialize};
+
+use crate::augment::Image;
+use crate::checkpoint::{self, CheckpointError};
+use crate::config::XFactorConfig;
+use crate::flax::{FlaxError, FlaxTensors};
+use crate::lpips::Lpips;
+use crate::model::XFactor;
+use crate::objective::{ObjectiveBatch, Stage1Config, Stage2Config, objective_loss};
+use crate::optim::{AdamW, AdamWConfig, Schedule};
+use crate::sharded::{add_gradients, sharded_gradients};
+
+/// The samples of one (micro-)batch, in the form its stage needs.
+#[derive(Debug, Clone)]
+pub enum Samples {
+    /// Stage 1: `(context, target)` frames.
+    Pairs(Vec<(Image, Image)>),
+    /// Stage 2: frames with their index in the video.
+    Views(Vec<Vec<(u64, Image)>>),
+}
+
+/// Where training samples come from. Implementations must return the same samples for the same
+/// `(step, first_sample, count)`, whichever process asks: that is what makes runs reproduce.
+pub trait BatchSource: Sync {
+    /// Global samples `first_sample .. first_sample + count` of `step`.
+    fn samples(&self, step: u64, first_sample: u64, count: usize) -> Result<Samples, String>;
+}
+
+/// Which objective a run optimises.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum StageObjective {
+    /// Stereo-monocular transferability.
+    Stage1(Stage1Config),
+    /// Multi-view fine-tune.
+    Stage2(Stage2Config),
+}
+
+impl StageObjective {
+    fn lpips_weight(&self) -> f64 {
+        match self {
+            Self::Stage1(config) => config.lpips_weight,
+            Self::Stage2(config) => config.lpips_weight,
+        }
+    }
+}
+
+/// Everything a single-process run needs besides the model configuration.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TrainConfig {
+    /// Root of every random draw.
+    pub seed: u64,
+    /// The objective.
+    pub objective: StageObjective,
+    /// Samples per optimiser update.
+    pub global_batch: usize,
+    /// Samples per forward/backward pass; the global batch is accumulated from these.
+    pub micro_batch: usize,
+    /// Threads that split each micro-batch (one per core is fastest on the CPU backend).
+    pub shards: usize,
+    /// Learning-rate schedule.
+    pub schedule: Schedule,
+    /// Optimiser settings.
+    pub optimizer: AdamWConfig,
+}
+
+/// Why training could not start or continue.
+#[derive(Debug, thiserror::Error)]
+pub enum TrainError {
+    /// The LPIPS weight is positive but no LPIPS network was given.
+    #[error(
+        "the objective weights LPIPS by {0} but no LPIPS weights were given: convert them with tools/convert_lpips_weights.py or set lpips_weight to 0"
+    )]
+    MissingLpips(f64),
+    /// The batch sizes do not divide.
+    #[error("global_batch {global} must be a positive multiple of micro_batch {micro}")]
+    BatchSizes {
+        /// Configured global batch.
+        global: usize,
+        /// Configured micro-batch.
+        micro: usize,
+    },
+    /// The batch source failed.
+    #[error("batch source, step {step}: {reason}")]
+    Source {
+        /// Step being assembled.
+        step: u64,
+        /// What the source reported.
+        reason: String,
+    },
+    /// The source returned samples of the other stage.
+    #[error("batch source returned {found} samples for a {expected} objective")]
+    WrongSamples {
+        /// The objective's stage.
+        expected: &'static str,
+        /// What came back.
+        found: &'static str,
+    },
+    /// A checkpoint file could not be written or read.
+    #[error(transparent)]
+    Checkpoint(#[from] CheckpointError),
+    /// Optimiser state is missing or misshapen.
+    #[error("optimizer state: {0}")]
+    OptimizerState(#[from] FlaxError),
+    /// `state.json` could not be written or read.
+    #[error("trainer state {path}: {reason}")]
+    State {
+        /// File at fault.
+        path: PathBuf,
+        /// What went wrong.
+        reason: String,
+    },
+}
+
+/// What one optimiser step measured.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct StepMetrics {
+    /// The step just taken (counted from 0).
+    pub step: u64,
+    /// Loss of the global batch.
+    pub loss: f32,
+    /// Learning rate used.
+    pub learning_rate: f64,
+    /// Global gradient norm before clipping.
+    pub grad_norm: f64,
+    /// False when the update was skipped for an exploding norm.
+    pub applied: bool,
+}
+
+#[derive(Debug, Serialize, Deserialize)]
+struct TrainerState {
+    step: u64,
+    updates: u64,
+    seed: u64,
+}
+
+/// A model, its optimiser and the step counter.
+pub struct Trainer {
+    config: TrainConfig,
+    model_config: XFactorConfig,
+    model: XFactor,
+    optimizer: AdamW,
+    lpips: Option<Lpips>,
+    step: u64,
+    device: Device,
+}
+
+impl Trainer {
+    /// Starts from `model` at step 0. Refuses a positive LPIPS weight without an LPIPS network;
+    /// with weight 0 it logs once that LPIPS is off.
+    pub fn new(
+        config: TrainConfig,
+        model_config: XFactorConfig,
+        model: XFactor,
+        lpips: Option<Lpips>,
+        device: &Device,
+    ) -> Result<Self, TrainError> {
+        let weight = config.objective.lpips_weight();
+        if weight > 0.0 && lpips.is_none() {
+            return Err(TrainError::MissingLpips(weight));
+        }
+        if weight == 0.0 {
+            tracing::info!("LPIPS weight is 0: training with the L1 loss alone");
+        }
+        if config.micro_batch == 0
+            || config.global_batch == 0
+            || !config.global_batch.is_multiple_of(config.micro_batch)
+        {
+            return Err(TrainError::BatchSizes {
+                global: config.global_batch,
+                micro: config.micro_batch,
+            });
+        }
+        Ok(Self {
+            optimizer: AdamW::new(config.optimizer.clone()),
+            config,
+            model_config,
+            model,
+            lpips,
+            step: 0,
+            device: device.clone(),
+        })
+    }
+
+    /// The model as trained so far.
+    pub fn model(&self) -> &XFactor {
+        &self.model
+    }
+
+    /// The next step to run.
+    pub fn step(&self) -> u64 {
+        self.step
+    }
+
+    /// One optimiser update over the global batch of the current step.
+    pub fn train_step(&mut self, source: &dyn BatchSource) -> Result<StepMetrics, TrainError> {
+        let (loss, grads) = self.batch_gradients(source)?;
+        Ok(self.apply_gradients(&grads, loss))
+    }
+
+    /// The loss and gradients of the current step's global batch, accumulated over micro-batches
+    /// (each split into shards), without touching the model. Data-parallel workers all-reduce
+    /// these before [`Trainer::apply_gradients`].
+    pub fn batch_gradients(
+        &self,
+        source: &dyn BatchSource,
+    ) -> Result<(f32, GradientsParams), TrainError> {
+        let step = self.step;
+        let _span = tracing::info_span!("batch_gradients", step).entered();
+        let micro = self.config.micro_batch;
+        let share = micro as f64 / self.config.global_batch as f64;
+        let mut total_loss = 0.0;
+        let mut accumulated: Option<GradientsParams> = None;
+        for first in (0..self.config.global_batch).step_by(micro) {
+            let batch = self.assemble(source, step, first as u64, micro)?;
+            let (loss, grads) = self.micro_batch_gradients(&batch, share);
+            total_loss += loss;
+            accumulated = Some(match accumulated {
+                None => grads,
+                Some(sum) => add_gradients(&self.model, sum, grads),
+            });
+        }
+        Ok((total_loss, accumulated.unwrap_or_default()))
+    }
+
+    /// Applies one optimiser update with the current step's learning rate and advances the step.
+    pub fn apply_gradients(&mut self, grads: &GradientsParams, loss: f32) -> StepMetrics {
+        let step = self.step;
+        let learning_rate = self.config.schedule.learning_rate(step);
+        let (model, report) = self
+            .optimizer
+            .step(self.model.clone(), grads, learning_rate);
+        self.model = model;
+        self.step += 1;
+        tracing::debug!(
+            step,
+            loss,
+            learning_rate,
+            grad_norm = report.grad_norm,
+            "update"
+        );
+        StepMetrics {
+            step,
+            loss,
+            learning_rate,
+            grad_norm: report.grad_norm,
+            applied: report.applied,
+        }
+    }
+
+    fn assemble(
+        &self,
+        source: &dyn BatchSource,
+        step: u64,
+        first: u64,
+        count: usize,
+    ) -> Result<Vec<ObjectiveBatch>, TrainError> {
+        let samples = source
+            .samples(step, first, count)
+            .map_err(|reason| TrainError::Source { step, reason })?;
+        let shards = self.config.shards.clamp(1, count.max(1));
+        let (seed, patch) = (self.config.seed, self.model_config.patch_size);
+        let bounds = |shard: usize| (shard * count / shards, (shard + 1) * count / shards);
+        (0..shards)
+            .map(|shard| {
+                let (begin, end) = bounds(shard);
+                let offset = first + begin as u64;
+                match (&self.config.objective, &samples) {
+                    (StageObjective::Stage1(objective), Samples::Pairs(pairs)) => Ok(objective
+                        .batch(&pairs[begin..end], seed, step, offset, patch, &self.device)),
+                    (StageObjective::Stage2(objective), Samples::Views(views)) => Ok(objective
+                        .batch(&views[begin..end], seed, step, offset, patch, &self.device)),
+                    (StageObjective::Stage1(_), Samples::Views(_)) => {
+                        Err(TrainError::WrongSamples {
+                            expected: "stage-1",
+                            found: "multi-view",
+                        })
+                    }
+                    (StageObjective::Stage2(_), Samples::Pairs(_)) => {
+                        Err(TrainError::WrongSamples {
+                            expected: "stage-2",
+                            found: "pair",
+                        })
+                    }
+                }
+            })
+            .collect()
+    }
+
+    fn micro_batch_gradients(
+        &self,
+        shards: &[ObjectiveBatch],
+        share: f64,
+    ) -> (f32, GradientsParams) {
+        let total: usize = shards.iter().map(|b| b.target.dims()[0]).sum();
+        let weight = self.config.objective.lpips_weight();
+        let lpips = self.lpips.as_ref();
+        sharded_gradients(&self.model, shards.len(), |copy, shard| {
+            let batch = &shards[shard];
+            let fraction = batch.target.dims()[0] as f64 / total as f64;
+            objective_loss(copy, lpips, weight, batch).total * (fraction * share)
+        })
+    }
+
+    /// Writes weights, optimiser moments and the step into `dir` (created if needed); files are
+    /// written to temporary names and renamed, state last, so a crash never leaves a checkpoint
+    /// that looks complete but is not.
+    pub fn save_checkpoint(&self, dir: &Path) -> Result<(), TrainError> {
+        let state_error = |reason: String| TrainError::State {
+            path: dir.join("state.json"),
+            reason,
+        };
+        std::fs::create_dir_all(dir).map_err(|e| state_error(e.to_string()))?;
+        checkpoint::save(
+            &self.model,
+            &self.model_config,
+            &dir.join("model.safetensors"),
+        )?;
+        let moments = self.optimizer.export_moments(&self.model);
+        write_host_tensors(&dir.join("optimizer.safetensors"), &moments).map_err(state_error)?;
+        let state = TrainerState {
+            step: self.step,
+            updates: self.optimizer.updates(),
+            seed: self.config.seed,
+        };
+        let json = serde_json::to_string_pretty(&state).map_err(|e| state_error(e.to_string()))?;
+        let temporary = dir.join("state.json.partial");
+        std::fs::write(&temporary, json).map_err(|e| state_error(e.to_string()))?;
+        std::fs::rename(&temporary, dir.join("state.json")).map_err(|e| state_error(e.to_string()))
+    }
+
+    /// Rebuilds a trainer from a checkpoint directory written by [`Trainer::save_checkpoint`].
+    pub fn resume(
+        config: TrainConfig,
+        dir: &Path,
+        lpips: Option<Lpips>,
+        device: &Device,
+    ) -> Result<Self, TrainError> {
+        let state_path = dir.join("state.json");
+        let state_error = |reason: String| TrainError::State {
+            path: state_path.clone(),
+            reason,
+        };
+        let text = std::fs::read_to_string(&state_path).map_err(|e| state_error(e.to_string()))?;
+        let state: TrainerState =
+            serde_json::from_str(&text).map_err(|e| state_error(e.to_string()))?;
+        let (model, model_config) = checkpoint::load(&dir.join("model.safetensors"), device)?;
+        let mut trainer = Self::new(config, model_config, model, lpips, device)?;
+        let moments = FlaxTensors::read(&dir.join("optimizer.safetensors"))?;
+        trainer
+            .optimizer
+            .import_moments(&trainer.model, &moments, state.updates)?;
+        trainer.step = state.step;
+        Ok(trainer)
+    }
+}
+
+fn write_host_tensors(
+    path: &Path,
+    tensors: &[(String, crate::flax::HostTensor)],
+) -> Result<(), String> {
+    let bytes: Vec<(String, Vec<u8>, Vec<usize>)> = tensors
+        .iter()
+        .map(|(name, host)| {
+            let data = host.values.iter().flat_map(|v| v.to_le_bytes()).collect();
+            (name.clone(), data, host.shape.clone())
+        })
+        .collect();
+    let views = bytes
+        .iter()
+        .map(|(name, data, shape)| {
+            safetensors::tensor::TensorView::new(safetensors::Dtype::F32, shape.clone(), data)
+                .map(|view| (name.clone(), view))
+                .map_err(|e| e.to_string())
+        })
+        .collect::<Result<Vec<_>, String>>()?;
+    let temporary = path.with_extension("partial");
+    safetensors::serialize_to_file(views, None, &temporary).map_err(|e| e.to_string())?;
+    std::fs::rename(&temporary, path).map_err(|e| e.to_string())
+}

@@ -1,0 +1,220 @@
+//! The single-process trainer: exact resume, accumulation equivalence, refusal without LPIPS.
+
+use burn::module::{Module, ModuleVisitor, Param};
+use burn::optim::GradientsParams;
+use burn::tensor::{Device, Tensor};
+use trainer_core::augment::Image;
+use trainer_core::objective::{Stage1Config, Stage2Config};
+use trainer_core::optim::{AdamWConfig, Schedule};
+use trainer_core::rng::Stream;
+use trainer_core::trainer::{
+    BatchSource, Samples, StageObjective, TrainConfig, TrainError, Trainer,
+};
+use trainer_core::{XFactor, XFactorConfig};
+
+const SIDE: usize = 16;
+
+fn frame(phases: &[f64], offset: f64) -> Image {
+    Image {
+        height: SIDE,
+        width: SIDE,
+        pixels: (0..SIDE * SIDE * 3)
+            .map(|i| {
+                let (y, x, c) = ((i / 3) / SIDE, (i / 3) % SIDE, i % 3);
+                let x = x as f64 + offset;
+                (0.6 * (0.4 * x + phases[c]).sin() * (0.3 * y as f64 + phases[c + 3]).cos()) as f32
+            })
+            .collect(),
+    }
+}
+
+/// Sliding-camera samples that depend only on `(step, sample)`.
+struct SlidingCamera {
+    views: Option<usize>,
+}
+
+impl BatchSource for SlidingCamera {
+    fn samples(&self, step: u64, first: u64, count: usize) -> Result<Samples, String> {
+        let scene = |sample: u64| {
+            let mut stream = Stream::new(&[step, sample]);
+            let phases: Vec<f64> = (0..6).map(|_| stream.uniform_in(0.0, 6.0)).collect();
+            let speed = stream.uniform_in(-0.6, 0.6);
+            (phases, speed)
+        };
+        let samples = first..first + count as u64;
+        Ok(match self.views {
+            None => Samples::Pairs(
+                samples
+                    .map(|s| {
+                        let (phases, speed) = scene(s);
+                        (frame(&phases, 0.0), frame(&phases, 4.0 * speed))
+                    })
+                    .collect(),
+            ),
+            Some(views) => Samples::Views(
+                samples
+                    .map(|s| {
+                        let (phases, speed) = scene(s);
+                        (0..views as u64)
+                            .map(|f| (f * 2, frame(&phases, f as f64 * speed)))
+                            .collect()
+                    })
+                    .collect(),
+            ),
+        })
+    }
+}
+
+fn model_config() -> XFactorConfig {
+    XFactorConfig {
+        image_size: SIDE,
+        patch_size: 4,
+        width: 32,
+        num_heads: 2,
+        pose_layers: 1,
+        render_layers: 1,
+        pose_dim: 8,
+        global_tokens: 2,
+        round_qkv_bf16: false,
+    }
+}
+
+fn train_config(objective: StageObjective, global: usize, micro: usize) -> TrainConfig {
+    TrainConfig {
+        seed: 9,
+        objective,
+        global_batch: global,
+        micro_batch: micro,
+        shards: 2,
+        schedule: Schedule {
+            initial_lr: 1e-4,
+            peak_lr: 2e-3,
+            final_lr: 1e-3,
+            warmup_steps: 2,
+            total_steps: 20,
+        },
+        optimizer: AdamWConfig::default(),
+    }
+}
+
+fn stage1() -> StageObjective {
+    StageObjective::Stage1(Stage1Config {
+        lpips_weight: 0.0,
+        ..Stage1Config::default()
+    })
+}
+
+fn parameters(model: &XFactor) -> Vec<Vec<f32>> {
+    struct Collect(Vec<Vec<f32>>);
+    impl ModuleVisitor for Collect {
+        fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
+            self.0.push(param.val().try_into_vec_as::<f32>().unwrap());
+        }
+    }
+    let mut collect = Collect(Vec::new());
+    model.visit(&mut collect);
+    collect.0
+}
+
+fn fresh_trainer(config: TrainConfig, device: &Device) -> Trainer {
+    let model = XFactor::new(&model_config(), 1, device).unwrap();
+    Trainer::new(config, model_config(), model, None, device).unwrap()
+}
+
+#[test]
+fn resume_continues_bitwise_exactly() {
+    let device = Device::flex().autodiff();
+    let source = SlidingCamera { views: None };
+    let config = train_config(stage1(), 4, 2);
+
+    let mut straight = fresh_trainer(config.clone(), &device);
+    for _ in 0..6 {
+        straight.train_step(&source).unwrap();
+    }
+
+    let dir = tempfile::tempdir().unwrap();
+    let mut first_half = fresh_trainer(config.clone(), &device);
+    for _ in 0..3 {
+        first_half.train_step(&source).unwrap();
+    }
+    first_half.save_checkpoint(dir.path()).unwrap();
+    drop(first_half);
+    let mut resumed = Trainer::resume(config, dir.path(), None, &device).unwrap();
+    assert_eq!(resumed.step(), 3);
+    for _ in 0..3 {
+        resumed.train_step(&source).unwrap();
+    }
+    assert_eq!(parameters(straight.model()), parameters(resumed.model()));
+}
+
+/// Every parameter's gradient, flattened, in the model's visiting order.
+fn gradient_values(model: &XFactor, grads: &GradientsParams) -> Vec<f32> {
+    struct Collect<'a>(&'a GradientsParams, Vec<f32>);
+    impl ModuleVisitor for Collect<'_> {
+        fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
+            let grad = self
+                .0
+                .get::<D>(param.id)
+                .expect("every parameter has a gradient");
+            self.1.extend(grad.try_into_vec_as::<f32>().unwrap());
+        }
+    }
+    let mut collect = Collect(grads, Vec::new());
+    model.visit(&mut collect);
+    collect.1
+}
+
+#[test]
+fn accumulating_two_micro_batches_equals_one_batch() {
+    let device = Device::flex().autodiff();
+    let source = SlidingCamera { views: None };
+    let accumulated = fresh_trainer(train_config(stage1(), 8, 4), &device);
+    let whole = fresh_trainer(train_config(stage1(), 8, 8), &device);
+    let (loss_a, grads_a) = accumulated.batch_gradients(&source).unwrap();
+    let (loss_b, grads_b) = whole.batch_gradients(&source).unwrap();
+    assert!((loss_a - loss_b).abs() < 1e-6, "{loss_a} vs {loss_b}");
+    let a = gradient_values(accumulated.model(), &grads_a);
+    let b = gradient_values(whole.model(), &grads_b);
+    assert_eq!(a.len(), b.len());
+    let scale = b.iter().fold(0.0f32, |m, v| m.max(v.abs()));
+    let worst = a
+        .iter()
+        .zip(&b)
+        .fold(0.0f32, |m, (x, y)| m.max((x - y).abs()));
+    assert!(
+        scale > 0.0 && worst <= 1e-5 * scale,
+        "gradients differ by {worst} of {scale}"
+    );
+}
+
+#[test]
+fn stage2_trains_from_multi_view_samples() {
+    let device = Device::flex().autodiff();
+    let objective = StageObjective::Stage2(Stage2Config {
+        lpips_weight: 0.0,
+        ..Stage2Config::default()
+    });
+    let mut trainer = fresh_trainer(train_config(objective, 2, 2), &device);
+    let metrics = trainer
+        .train_step(&SlidingCamera { views: Some(6) })
+        .unwrap();
+    assert!(metrics.loss.is_finite() && metrics.applied);
+    let wrong = trainer
+        .train_step(&SlidingCamera { views: None })
+        .unwrap_err();
+    assert!(matches!(wrong, TrainError::WrongSamples { .. }), "{wrong}");
+}
+
+#[test]
+fn a_positive_lpips_weight_without_weights_is_refused() {
+    let device = Device::flex().autodiff();
+    let model = XFactor::new(&model_config(), 1, &device).unwrap();
+    let config = train_config(StageObjective::Stage1(Stage1Config::default()), 4, 2);
+    let error = Trainer::new(config, model_config(), model, None, &device)
+        .err()
+        .expect("refused");
+    assert!(
+        error.to_string().contains("convert_lpips_weights"),
+        "{error}"
+    );
+}
