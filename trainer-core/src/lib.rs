@@ -15,6 +15,7 @@ pub mod objective;
 pub mod optim;
 pub mod parity;
 pub mod rng;
+pub mod scenes;
 pub mod sharded;
 pub mod trainer;
 

@@ -70,7 +70,11 @@ fn sub(a: Vec3, b: Vec3) -> Vec3 {
 
 /// `a + scale * b`.
 fn add_scaled(a: Vec3, b: Vec3, scale: f64) -> Vec3 {
-    [a[0] + scale * b[0], a[1] + scale * b[1], a[2] + scale * b[2]]
+    [
+        a[0] + scale * b[0],
+        a[1] + scale * b[1],
+        a[2] + scale * b[2],
+    ]
 }
 
 fn cross(a: Vec3, b: Vec3) -> Vec3 {
@@ -539,9 +543,14 @@ impl Object {
 enum Hit {
     Nothing,
     /// The room face perpendicular to `axis` that the ray travels toward.
-    Room { axis: usize },
+    Room {
+        axis: usize,
+    },
     /// Object `index`; for a box, `axis` is the axis of the face entered.
-    Object { index: usize, axis: usize },
+    Object {
+        index: usize,
+        axis: usize,
+    },
 }
 
 /// The two coordinates of `point` along a plane perpendicular to `axis`, as a texture point.
@@ -620,7 +629,11 @@ impl Scene {
 
     /// Renders every pose of a trajectory, in order: one training sequence.
     pub fn render_trajectory(&self, trajectory: &Trajectory) -> Vec<Image> {
-        trajectory.poses.iter().map(|pose| self.render(pose)).collect()
+        trajectory
+            .poses
+            .iter()
+            .map(|pose| self.render(pose))
+            .collect()
     }
 
     /// The shaded colour in `[0, 1]` seen along a ray (`direction` need not be unit length).
@@ -785,10 +798,10 @@ mod tests {
         assert!(above[1] < 0.0);
         // Proper rotation.
         let r = pose.rotation;
-        for i in 0..3 {
-            for j in 0..3 {
+        for (i, &row) in r.iter().enumerate() {
+            for (j, &other) in r.iter().enumerate() {
                 let expected = if i == j { 1.0 } else { 0.0 };
-                assert!((dot(r[i], r[j]) - expected).abs() < 1e-9);
+                assert!((dot(row, other) - expected).abs() < 1e-9);
             }
         }
         assert!((dot(cross(r[0], r[1]), r[2]) - 1.0).abs() < 1e-9);
@@ -813,7 +826,11 @@ mod tests {
         assert_eq!(image.pixels.len(), 64 * 64 * 3);
         assert!(image.pixels.iter().all(|v| (-1.0..=1.0).contains(v)));
         let low = image.pixels.iter().copied().fold(f32::INFINITY, f32::min);
-        let high = image.pixels.iter().copied().fold(f32::NEG_INFINITY, f32::max);
+        let high = image
+            .pixels
+            .iter()
+            .copied()
+            .fold(f32::NEG_INFINITY, f32::max);
         assert!(high - low > 0.3, "range {low}..{high}");
 
         let small = SceneConfig {
