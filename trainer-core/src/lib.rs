@@ -17,6 +17,7 @@ pub mod parity;
 pub mod rng;
 pub mod scenes;
 pub mod sharded;
+pub mod synthetic;
 pub mod trainer;
 
 pub use config::XFactorConfig;
