@@ -29,6 +29,8 @@ pub struct SyntheticDataset {
     pub seed: u64,
     /// Largest frame gap between the two frames of a pair.
     pub max_gap: usize,
+    /// Frames per sample: 2 gives stage-1 pairs, more gives stage-2 multi-view samples.
+    pub views: usize,
     /// Sequences, scene-major.
     pub sequences: Vec<SyntheticSequence>,
 }
@@ -60,6 +62,7 @@ impl SyntheticDataset {
         Self {
             seed,
             max_gap: frames.saturating_sub(1).max(1),
+            views: 2,
             sequences,
         }
     }
@@ -86,15 +89,50 @@ impl SyntheticDataset {
             (sequence, start, start + gap)
         }
     }
+
+    /// `(sequence, frame indices)` for a multi-view sample: `views` distinct frames of one
+    /// uniformly chosen sequence, in increasing order.
+    pub fn draw_views(&self, step: u64, sample: u64) -> (usize, Vec<usize>) {
+        let mut stream = Stream::new(&[self.seed, SAMPLING_STREAM, step, sample]);
+        let sequence = stream.below(self.sequences.len() as u64) as usize;
+        let mut indices: Vec<usize> = (0..self.sequences[sequence].frames.len()).collect();
+        for i in (1..indices.len()).rev() {
+            indices.swap(i, stream.below(i as u64 + 1) as usize);
+        }
+        indices.truncate(self.views);
+        indices.sort_unstable();
+        (sequence, indices)
+    }
 }
 
 impl BatchSource for SyntheticDataset {
     fn samples(&self, step: u64, first_sample: u64, count: usize) -> Result<Samples, String> {
-        if self.sequences.iter().any(|s| s.frames.len() < 2) {
-            return Err("every synthetic sequence needs at least two frames".to_string());
+        let needed = self.views.max(2);
+        if let Some(short) = self.sequences.iter().find(|s| s.frames.len() < needed) {
+            return Err(format!(
+                "synthetic sequence (scene {}, trajectory {}) has {} frames, samples need {needed}",
+                short.scene,
+                short.trajectory,
+                short.frames.len()
+            ));
+        }
+        let samples = first_sample..first_sample + count as u64;
+        if self.views > 2 {
+            return Ok(Samples::Views(
+                samples
+                    .map(|sample| {
+                        let (sequence, indices) = self.draw_views(step, sample);
+                        let frames = &self.sequences[sequence].frames;
+                        indices
+                            .into_iter()
+                            .map(|i| (i as u64, frames[i].clone()))
+                            .collect()
+                    })
+                    .collect(),
+            ));
         }
         Ok(Samples::Pairs(
-            (first_sample..first_sample + count as u64)
+            samples
                 .map(|sample| {
                     let (sequence, first, second) = self.draw_pair(step, sample);
                     let frames = &self.sequences[sequence].frames;
@@ -126,6 +164,19 @@ mod tests {
             reversed += usize::from(a > b);
         }
         assert!((reversed as f64 / 2000.0 - 0.5).abs() < 0.05);
+        dataset.views = 4;
+        for sample in 0..100 {
+            let (_, indices) = dataset.draw_views(1, sample);
+            assert_eq!(indices.len(), 4);
+            assert!(indices.windows(2).all(|w| w[0] < w[1]));
+        }
+        dataset.views = 7;
+        assert!(
+            dataset
+                .samples(0, 0, 1)
+                .unwrap_err()
+                .contains("samples need 7")
+        );
         let a = dataset.sequence(0, 2).unwrap();
         let b = dataset.sequence(1, 2).unwrap();
         assert_eq!(a.poses, b.poses);
