@@ -341,6 +341,41 @@ impl Trainer {
         std::fs::rename(&temporary, dir.join("state.json")).map_err(|e| state_error(e.to_string()))
     }
 
+    /// Runs steps until `total_steps`, writing a checkpoint into `dir` every `every` steps and
+    /// after the last one, and handing each step's metrics to `on_step` (progress, logs).
+    pub fn run(
+        &mut self,
+        source: &dyn BatchSource,
+        total_steps: u64,
+        checkpoints: Option<(&Path, u64)>,
+        mut on_step: impl FnMut(&StepMetrics),
+    ) -> Result<(), TrainError> {
+        while self.step < total_steps {
+            let metrics = self.train_step(source)?;
+            on_step(&metrics);
+            if let Some((dir, every)) = checkpoints {
+                let done = self.step;
+                if done == total_steps || (every > 0 && done.is_multiple_of(every)) {
+                    let _span = tracing::info_span!("checkpoint", step = done).entered();
+                    self.save_checkpoint(dir)?;
+                }
+            }
+        }
+        Ok(())
+    }
+
+    /// Starts a new run (step 0, fresh optimiser) from the weights of a checkpoint directory:
+    /// how stage 2 begins from stage 1's final checkpoint.
+    pub fn from_weights(
+        config: TrainConfig,
+        dir: &Path,
+        lpips: Option<Lpips>,
+        device: &Device,
+    ) -> Result<Self, TrainError> {
+        let (model, model_config) = checkpoint::load(&dir.join("model.safetensors"), device)?;
+        Self::new(config, model_config, model, lpips, device)
+    }
+
     /// Rebuilds a trainer from a checkpoint directory written by [`Trainer::save_checkpoint`].
     pub fn resume(
         config: TrainConfig,

@@ -218,3 +218,45 @@ fn a_positive_lpips_weight_without_weights_is_refused() {
         "{error}"
     );
 }
+
+#[test]
+fn run_checkpoints_every_n_steps_and_stage2_starts_from_stage1_weights() {
+    let device = Device::flex().autodiff();
+    let dir = tempfile::tempdir().unwrap();
+    let mut stage1_trainer = fresh_trainer(train_config(stage1(), 2, 2), &device);
+    let mut seen = Vec::new();
+    let mut saved_at = Vec::new();
+    stage1_trainer
+        .run(
+            &SlidingCamera { views: None },
+            5,
+            Some((dir.path(), 2)),
+            |m| {
+                seen.push(m.step);
+                let state = std::fs::read_to_string(dir.path().join("state.json")).ok();
+                saved_at.push(state);
+            },
+        )
+        .unwrap();
+    assert_eq!(seen, vec![0, 1, 2, 3, 4]);
+    let state = std::fs::read_to_string(dir.path().join("state.json")).unwrap();
+    assert!(state.contains("\"step\": 5"), "{state}");
+    // A checkpoint existed after step 2 (written when 2 steps were done).
+    assert!(
+        saved_at[2]
+            .as_deref()
+            .is_some_and(|s| s.contains("\"step\": 2"))
+    );
+
+    let stage2 = StageObjective::Stage2(Stage2Config {
+        lpips_weight: 0.0,
+        ..Stage2Config::default()
+    });
+    let stage2_trainer =
+        Trainer::from_weights(train_config(stage2, 2, 2), dir.path(), None, &device).unwrap();
+    assert_eq!(stage2_trainer.step(), 0);
+    assert_eq!(
+        parameters(stage2_trainer.model()),
+        parameters(stage1_trainer.model())
+    );
+}
