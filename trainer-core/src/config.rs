@@ -93,6 +93,22 @@ impl XFactorConfig {
         }
     }
 
+    /// A model small enough to train in seconds on a laptop CPU (patch 4, width 32, 2 heads,
+    /// 1 + 1 layers, `Cp = 8`, `G = 2`): tests, demos and smoke runs.
+    pub fn tiny(image_size: usize) -> Self {
+        Self {
+            image_size,
+            patch_size: 4,
+            width: 32,
+            num_heads: 2,
+            pose_layers: 1,
+            render_layers: 1,
+            pose_dim: 8,
+            global_tokens: 2,
+            round_qkv_bf16: false,
+        }
+    }
+
     /// Checks every constraint the networks rely on.
     pub fn validate(&self) -> Result<(), ConfigError> {
         for (field, value) in [

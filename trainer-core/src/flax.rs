@@ -150,6 +150,22 @@ impl FlaxTensors {
         })
     }
 
+    /// The tensor `name`, which must have shape `expected`; an error names it and both shapes.
+    pub fn expect(&self, name: &str, expected: &[usize]) -> Result<&HostTensor, FlaxError> {
+        let stored = self.get(name).ok_or_else(|| FlaxError::Missing {
+            name: name.to_string(),
+            expected: expected.to_vec(),
+        })?;
+        if stored.shape != expected {
+            return Err(FlaxError::Shape {
+                name: name.to_string(),
+                expected: expected.to_vec(),
+                found: stored.shape.clone(),
+            });
+        }
+        Ok(stored)
+    }
+
     /// Names that start with `prefix`.
     pub fn names_with_prefix<'a>(&'a self, prefix: &'a str) -> impl Iterator<Item = &'a str> {
         self.tensors

@@ -12,7 +12,7 @@ use burn::tensor::module::{conv2d, max_pool2d};
 use burn::tensor::ops::{ConvOptions, MaxPoolOptions};
 use burn::tensor::{Device, Tensor, TensorData};
 
-use crate::flax::{FlaxError, FlaxTensors, HostTensor};
+use crate::flax::{FlaxError, FlaxTensors};
 
 /// Convolutions per VGG16 block.
 const BLOCK_DEPTHS: [usize; 5] = [2, 2, 3, 3, 3];
@@ -50,30 +50,14 @@ impl Lpips {
 
     /// Builds the network from already-read tensors, checking every name and shape.
     pub fn from_tensors(tensors: &FlaxTensors, device: &Device) -> Result<Self, FlaxError> {
-        let fetch = |name: String, expected: Vec<usize>| -> Result<HostTensor, FlaxError> {
-            let stored = tensors.get(&name).ok_or_else(|| FlaxError::Missing {
-                name: name.clone(),
-                expected: expected.clone(),
-            })?;
-            if stored.shape != expected {
-                return Err(FlaxError::Shape {
-                    name,
-                    expected,
-                    found: stored.shape.clone(),
-                });
-            }
-            Ok(stored.clone())
-        };
         let mut convs = Vec::new();
         let mut in_channels = 3;
         for (block, (&depth, &channels)) in BLOCK_DEPTHS.iter().zip(&BLOCK_CHANNELS).enumerate() {
             for layer in 1..=depth {
                 let prefix = format!("vgg.conv{}_{layer}", block + 1);
-                let hwio = fetch(
-                    format!("{prefix}.weight"),
-                    vec![3, 3, in_channels, channels],
-                )?;
-                let bias = fetch(format!("{prefix}.bias"), vec![channels])?;
+                let hwio =
+                    tensors.expect(&format!("{prefix}.weight"), &[3, 3, in_channels, channels])?;
+                let bias = tensors.expect(&format!("{prefix}.bias"), &[channels])?;
                 let weight = hwio.to_tensor::<4>(device).permute([3, 2, 0, 1]);
                 convs.push(Conv3x3 {
                     weight: Param::from_tensor(weight),
@@ -86,7 +70,7 @@ impl Lpips {
             .iter()
             .enumerate()
             .map(|(i, &channels)| {
-                let lin = fetch(format!("lin.lin{i}"), vec![1, 1, channels, 1])?;
+                let lin = tensors.expect(&format!("lin.lin{i}"), &[1, 1, channels, 1])?;
                 Ok(Param::from_tensor(
                     lin.to_tensor::<4>(device).reshape([channels]),
                 ))

@@ -221,18 +221,7 @@ impl AdamW {
         }
         for (id, name, shape) in names.params {
             let fetch = |prefix: &str| -> Result<Tensor<1>, FlaxError> {
-                let key = format!("{prefix}.{name}");
-                let stored = tensors.get(&key).ok_or_else(|| FlaxError::Missing {
-                    name: key.clone(),
-                    expected: shape.clone(),
-                })?;
-                if stored.shape != shape {
-                    return Err(FlaxError::Shape {
-                        name: key,
-                        expected: shape.clone(),
-                        found: stored.shape.clone(),
-                    });
-                }
+                let stored = tensors.expect(&format!("{prefix}.{name}"), &shape)?;
                 let flat = HostTensor {
                     shape: vec![stored.values.len()],
                     values: stored.values.clone(),

@@ -110,17 +110,7 @@ mod tests {
 
     #[test]
     fn two_shards_give_the_gradients_of_one_batch() {
-        let config = XFactorConfig {
-            image_size: 16,
-            patch_size: 4,
-            width: 32,
-            num_heads: 2,
-            pose_layers: 1,
-            render_layers: 1,
-            pose_dim: 8,
-            global_tokens: 2,
-            round_qkv_bf16: false,
-        };
+        let config = XFactorConfig::tiny(16);
         let device = Device::flex().autodiff();
         let model = XFactor::new(&config, 5, &device).unwrap();
         let batch = 4;

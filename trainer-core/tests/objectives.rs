@@ -40,17 +40,7 @@ fn sliding_pair(stream: &mut Stream) -> (Image, Image) {
 }
 
 fn tiny_config() -> XFactorConfig {
-    XFactorConfig {
-        image_size: SIDE,
-        patch_size: 4,
-        width: 32,
-        num_heads: 2,
-        pose_layers: 1,
-        render_layers: 1,
-        pose_dim: 8,
-        global_tokens: 2,
-        round_qkv_bf16: false,
-    }
+    XFactorConfig::tiny(SIDE)
 }
 
 #[test]

@@ -12,17 +12,11 @@ use trainer_core::flax::{FlaxTensors, PARAMS_PREFIX, load_flax};
 use trainer_core::rng::Stream;
 use trainer_core::{XFactor, XFactorConfig, checkpoint};
 
+/// Two Render layers, unlike PoseEnc's one, so mismatched layer counts are exercised.
 fn tiny_config() -> XFactorConfig {
     XFactorConfig {
-        image_size: 16,
-        patch_size: 4,
-        width: 32,
-        num_heads: 2,
-        pose_layers: 1,
         render_layers: 2,
-        pose_dim: 8,
-        global_tokens: 2,
-        round_qkv_bf16: false,
+        ..XFactorConfig::tiny(16)
     }
 }
 
