@@ -8,6 +8,7 @@ pub mod augment;
 pub mod backend;
 pub mod checkpoint;
 pub mod config;
+pub mod data;
 pub mod flax;
 pub mod lpips;
 pub mod model;

@@ -1,0 +1,10 @@
+//! The aggregate dataset: manifests of sequences, the window sampler with its curriculum and
+//! mixture, and sharding of sequences across ranks.
+
+pub mod manifest;
+pub mod sampler;
+pub mod shard;
+
+pub use manifest::{DatasetKind, Manifest, Sequence, Split};
+pub use sampler::{DatasetSampling, SamplerConfig, WindowDraw};
+pub use shard::shard_sequences;

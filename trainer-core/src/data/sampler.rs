@@ -1,0 +1,316 @@
+//! Which frames of which sequence a training sample uses: the per-dataset window sampler with
+//! its curriculum, the mixture over datasets, stage 2's long-baseline weighting and reference
+//! band.
+
+use serde::{Deserialize, Serialize};
+
+use super::manifest::DatasetKind;
+use crate::rng::Stream;
+
+/// Sampling settings of one dataset.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct DatasetSampling {
+    /// The dataset.
+    pub dataset: DatasetKind,
+    /// Mixture weight (relative).
+    pub weight: f64,
+    /// Largest window length at step 0.
+    pub window_begin: usize,
+    /// Largest window length once the curriculum is over.
+    pub window_end: usize,
+}
+
+/// Sampling settings of one stage (defaults per stage: the paper's).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SamplerConfig {
+    /// Frames per sample (2 in stage 1, 6 in stage 2).
+    pub frames: usize,
+    /// Steps over which the largest window grows from `window_begin` to `window_end`.
+    pub curriculum_steps: u64,
+    /// Probability that the frame order is reversed.
+    pub reverse_probability: f64,
+    /// Favour long windows with `0.8 exp(-((u - 0.7) / 0.25)^2) + 0.2` (stage 2).
+    pub long_baseline: bool,
+    /// Keep the reference (middlest) frame within `band * window / 2` of both ends (stage 2:
+    /// `1.25`).
+    pub reference_band: Option<f64>,
+    /// Per-dataset settings.
+    pub datasets: Vec<DatasetSampling>,
+}
+
+fn datasets(entries: [(DatasetKind, f64, usize, usize); 4]) -> Vec<DatasetSampling> {
+    entries
+        .into_iter()
+        .map(
+            |(dataset, weight, window_begin, window_end)| DatasetSampling {
+                dataset,
+                weight,
+                window_begin,
+                window_end,
+            },
+        )
+        .collect()
+}
+
+impl SamplerConfig {
+    /// Stage 1: pairs; CO3Dv2 `9 -> 20`, DL3DV `5 -> 10`, RE10K `40 -> 100`, MVImgNet `5 -> 10`,
+    /// equal weights.
+    pub fn stage1() -> Self {
+        Self {
+            frames: 2,
+            curriculum_steps: 50_000,
+            reverse_probability: 0.5,
+            long_baseline: false,
+            reference_band: None,
+            datasets: datasets([
+                (DatasetKind::Co3dv2, 1.0, 9, 20),
+                (DatasetKind::Dl3dv, 1.0, 5, 10),
+                (DatasetKind::Re10k, 1.0, 40, 100),
+                (DatasetKind::Mvimgnet, 1.0, 5, 10),
+            ]),
+        }
+    }
+
+    /// Stage 2: 6 frames; CO3Dv2 `9 -> 40` (2), DL3DV `6 -> 20` (5), RE10K `40 -> 200` (3),
+    /// MVImgNet `6 -> 20` (2); long baselines favoured; reference band 1.25.
+    pub fn stage2() -> Self {
+        Self {
+            frames: 6,
+            curriculum_steps: 50_000,
+            reverse_probability: 0.5,
+            long_baseline: true,
+            reference_band: Some(1.25),
+            datasets: datasets([
+                (DatasetKind::Co3dv2, 2.0, 9, 40),
+                (DatasetKind::Dl3dv, 5.0, 6, 20),
+                (DatasetKind::Re10k, 3.0, 40, 200),
+                (DatasetKind::Mvimgnet, 2.0, 6, 20),
+            ]),
+        }
+    }
+
+    /// The settings of `dataset`, if it takes part.
+    pub fn dataset(&self, dataset: DatasetKind) -> Option<&DatasetSampling> {
+        self.datasets.iter().find(|d| d.dataset == dataset)
+    }
+
+    /// Draws a dataset with probability proportional to its weight, among `available` ones.
+    pub fn choose_dataset(
+        &self,
+        available: &[DatasetKind],
+        stream: &mut Stream,
+    ) -> Option<DatasetKind> {
+        let candidates: Vec<&DatasetSampling> = self
+            .datasets
+            .iter()
+            .filter(|d| d.weight > 0.0 && available.contains(&d.dataset))
+            .collect();
+        let total: f64 = candidates.iter().map(|d| d.weight).sum();
+        let mut pick = stream.uniform() * total;
+        for candidate in &candidates {
+            if pick < candidate.weight {
+                return Some(candidate.dataset);
+            }
+            pick -= candidate.weight;
+        }
+        candidates.last().map(|d| d.dataset)
+    }
+
+    /// The largest window length of `dataset` at `step` (linear ramp, then constant).
+    pub fn max_window(&self, dataset: &DatasetSampling, step: u64) -> usize {
+        let progress = if self.curriculum_steps == 0 {
+            1.0
+        } else {
+            (step as f64 / self.curriculum_steps as f64).min(1.0)
+        };
+        let begin = dataset.window_begin as f64;
+        let end = dataset.window_end as f64;
+        (begin + (end - begin) * progress).round() as usize
+    }
+
+    /// Draws the frames of one sample from a sequence of `length` frames of `dataset` at `step`.
+    /// Returns `None` when the sequence is shorter than `frames`.
+    pub fn draw_window(
+        &self,
+        dataset: &DatasetSampling,
+        length: usize,
+        step: u64,
+        stream: &mut Stream,
+    ) -> Option<WindowDraw> {
+        let n = self.frames.max(2);
+        if length < n {
+            return None;
+        }
+        let largest = self.max_window(dataset, step).clamp(n, length);
+        let window = if self.long_baseline {
+            weighted_length(n, largest, stream)
+        } else {
+            n + stream.below((largest - n + 1) as u64) as usize
+        };
+        let start = stream.below((length - window + 1) as u64) as usize;
+        let last = start + window - 1;
+        let mut frames = vec![start, last];
+        let interior: Vec<usize> = (start + 1..last).collect();
+        let mut chosen: Vec<usize> = Vec::new();
+        if let Some(band) = self.reference_band.filter(|_| n > 2) {
+            let reach = band * window as f64 / 2.0;
+            let central: Vec<usize> = interior
+                .iter()
+                .copied()
+                .filter(|&f| ((f - start).max(last - f) as f64) <= reach)
+                .collect();
+            if !central.is_empty() {
+                chosen.push(central[stream.below(central.len() as u64) as usize]);
+            }
+        }
+        let mut remaining: Vec<usize> = interior
+            .into_iter()
+            .filter(|f| !chosen.contains(f))
+            .collect();
+        while chosen.len() < n - 2 {
+            let pick = stream.below(remaining.len() as u64) as usize;
+            chosen.push(remaining.swap_remove(pick));
+        }
+        frames.extend(chosen);
+        frames.sort_unstable();
+        if stream.bernoulli(self.reverse_probability) {
+            frames.reverse();
+        }
+        Some(WindowDraw { window, frames })
+    }
+}
+
+/// The frames drawn for one sample.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct WindowDraw {
+    /// Window length (frames spanned, ends included).
+    pub window: usize,
+    /// Frame indices in sample order (increasing, or decreasing when reversed).
+    pub frames: Vec<usize>,
+}
+
+/// Stage 2's long-baseline weight of position `u` in `[0, 1]` along the allowed lengths.
+pub fn long_baseline_weight(u: f64) -> f64 {
+    0.8 * (-((u - 0.7) / 0.25).powi(2)).exp() + 0.2
+}
+
+fn weighted_length(shortest: usize, longest: usize, stream: &mut Stream) -> usize {
+    if longest <= shortest {
+        return shortest;
+    }
+    let span = (longest - shortest) as f64;
+    let weights: Vec<f64> = (shortest..=longest)
+        .map(|l| long_baseline_weight((l - shortest) as f64 / span))
+        .collect();
+    let total: f64 = weights.iter().sum();
+    let mut pick = stream.uniform() * total;
+    for (offset, weight) in weights.iter().enumerate() {
+        if pick < *weight {
+            return shortest + offset;
+        }
+        pick -= weight;
+    }
+    longest
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn stage1_windows_respect_bounds_and_the_curriculum() {
+        let config = SamplerConfig::stage1();
+        let re10k = config.dataset(DatasetKind::Re10k).unwrap();
+        assert_eq!(config.max_window(re10k, 0), 40);
+        assert_eq!(config.max_window(re10k, 25_000), 70);
+        assert_eq!(config.max_window(re10k, 50_000), 100);
+        assert_eq!(config.max_window(re10k, 200_000), 100);
+        let mut reversed = 0;
+        let draws = 10_000u64;
+        let mut longest_seen = 0;
+        for sample in 0..draws {
+            let mut stream = Stream::new(&[1, sample]);
+            let draw = config.draw_window(re10k, 300, 25_000, &mut stream).unwrap();
+            assert!((2..=70).contains(&draw.window));
+            assert_eq!(draw.frames.len(), 2);
+            assert_eq!(draw.frames[0].abs_diff(draw.frames[1]) + 1, draw.window);
+            assert!(draw.frames.iter().all(|&f| f < 300));
+            reversed += usize::from(draw.frames[0] > draw.frames[1]);
+            longest_seen = longest_seen.max(draw.window);
+        }
+        assert_eq!(longest_seen, 70);
+        assert!((reversed as f64 / draws as f64 - 0.5).abs() < 0.02);
+        let short = config
+            .draw_window(re10k, 30, 50_000, &mut Stream::new(&[2]))
+            .unwrap();
+        assert!(short.window <= 30);
+        assert!(
+            config
+                .draw_window(re10k, 1, 0, &mut Stream::new(&[2]))
+                .is_none()
+        );
+    }
+
+    #[test]
+    fn mixture_frequencies_follow_the_weights() {
+        let config = SamplerConfig::stage2();
+        let draws = 40_000u64;
+        let mut counts = std::collections::HashMap::new();
+        for sample in 0..draws {
+            let chosen = config
+                .choose_dataset(&DatasetKind::ALL, &mut Stream::new(&[3, sample]))
+                .unwrap();
+            *counts.entry(chosen).or_insert(0usize) += 1;
+        }
+        for (dataset, expected) in [
+            (DatasetKind::Co3dv2, 2.0 / 12.0),
+            (DatasetKind::Dl3dv, 5.0 / 12.0),
+            (DatasetKind::Re10k, 3.0 / 12.0),
+            (DatasetKind::Mvimgnet, 2.0 / 12.0),
+        ] {
+            let share = counts[&dataset] as f64 / draws as f64;
+            assert!((share - expected).abs() < 0.01, "{dataset:?}: {share}");
+        }
+        let only = config
+            .choose_dataset(&[DatasetKind::Re10k], &mut Stream::new(&[0]))
+            .unwrap();
+        assert_eq!(only, DatasetKind::Re10k);
+    }
+
+    #[test]
+    fn stage2_favours_long_windows_and_keeps_a_central_reference() {
+        let config = SamplerConfig::stage2();
+        let dl3dv = config.dataset(DatasetKind::Dl3dv).unwrap();
+        let mut long = 0;
+        let mut short = 0;
+        for sample in 0..20_000u64 {
+            let draw = config
+                .draw_window(dl3dv, 100, 60_000, &mut Stream::new(&[4, sample]))
+                .unwrap();
+            assert_eq!(draw.frames.len(), 6);
+            let mut sorted = draw.frames.clone();
+            sorted.sort_unstable();
+            sorted.dedup();
+            assert_eq!(sorted.len(), 6, "distinct frames");
+            let (first, last) = (sorted[0], sorted[5]);
+            assert_eq!(last - first + 1, draw.window);
+            let best = sorted[1..5]
+                .iter()
+                .map(|&f| (f - first).max(last - f))
+                .min()
+                .unwrap();
+            assert!(best as f64 <= 1.25 * draw.window as f64 / 2.0);
+            // Allowed lengths 6..=20: u = 0.7 is length 15.8, u = 0 is length 6.
+            long += usize::from(draw.window == 16);
+            short += usize::from(draw.window == 6);
+        }
+        let ratio = long as f64 / short as f64;
+        let expected = long_baseline_weight(10.0 / 14.0) / long_baseline_weight(0.0);
+        assert!(
+            (ratio - expected).abs() < 0.25 * expected,
+            "{ratio} vs {expected}"
+        );
+    }
+}
