@@ -4,7 +4,7 @@
 use crate::rng::Stream;
 
 /// Tag of the shuffling streams.
-const SHARD_STREAM: u64 = 0x5348_4152_44;
+const SHARD_STREAM: u64 = 0x0053_4841_5244;
 
 /// Assigns each sequence (by index into `frame_counts`) to one of `world_size` ranks for
 /// `epoch`: sequences are shuffled from `(seed, epoch)`, then each goes to the rank holding the
