@@ -1,6 +1,7 @@
 //! The aggregate dataset: manifests of sequences, the window sampler with its curriculum and
 //! mixture, and sharding of sequences across ranks.
 
+pub mod decode;
 pub mod manifest;
 pub mod sampler;
 pub mod shard;
