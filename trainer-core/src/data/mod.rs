@@ -2,9 +2,12 @@
 //! mixture, and sharding of sequences across ranks.
 
 pub mod decode;
+pub mod index;
 pub mod manifest;
 pub mod sampler;
 pub mod shard;
+pub mod source;
+pub mod store;
 
 pub use manifest::{DatasetKind, Manifest, Sequence, Split};
 pub use sampler::{DatasetSampling, SamplerConfig, WindowDraw};

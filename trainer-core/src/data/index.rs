@@ -1,0 +1,419 @@
+//! Indexers for the four dataset layouts, as the authors' release reads them:
+//!
+//! - RE10K: `{split}/images/{sequence}/*` (split `train` / `test`); camera files
+//!   `{split}/cameras/{sequence}.txt` when present.
+//! - DL3DV: `training_256/{part}/{sequence}/images_8/*` with `transforms.json` beside
+//!   `images_8` (sequences without it are skipped); ids present under
+//!   `test_256/benchmark_960p/` are the test split and never train.
+//! - MVImgNet: `{category}/{scene}/images/NNN.jpg` (three-digit names), only scenes with a
+//!   COLMAP `sparse/` directory; the first 90% of scenes per category (sorted) train.
+//! - CO3Dv2: `{category}/{sequence}/images/frameNNNNNN.jpg`, sequences whose name starts with a
+//!   digit; the first 90% per category train; `{category}/frame_annotations.jgz` when present.
+//!
+//! Sequences shorter than [`MIN_FRAMES`] are dropped everywhere.
+
+use std::collections::{BTreeMap, BTreeSet};
+
+use super::manifest::{DatasetKind, Manifest, Sequence, Split};
+use super::store::{DataRoot, StoreError};
+
+/// Sequences with fewer frames are dropped.
+pub const MIN_FRAMES: usize = 10;
+/// Share of each category's sequences (sorted) that trains, for MVImgNet and CO3Dv2.
+const TRAIN_SHARE: f64 = 0.9;
+
+/// Why a dataset could not be indexed.
+#[derive(Debug, thiserror::Error)]
+pub enum IndexError {
+    /// The root could not be listed.
+    #[error(transparent)]
+    Store(#[from] StoreError),
+    /// The root holds nothing at all.
+    #[error("{dataset} root `{uri}` is empty")]
+    Empty {
+        /// Dataset being indexed.
+        dataset: &'static str,
+        /// The root.
+        uri: String,
+    },
+    /// Objects exist, but none forms a usable sequence of this layout.
+    #[error(
+        "{dataset} root `{uri}` holds {objects} objects but no sequence of the {dataset} layout with at least {MIN_FRAMES} frames ({skipped} candidates skipped)"
+    )]
+    NoSequences {
+        /// Dataset being indexed.
+        dataset: &'static str,
+        /// The root.
+        uri: String,
+        /// Objects listed.
+        objects: usize,
+        /// Sequences dropped by the layout's rules.
+        skipped: usize,
+    },
+}
+
+/// A manifest and what its rules dropped.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Indexed {
+    /// The usable sequences.
+    pub manifest: Manifest,
+    /// `(sequence id, reason)` of every dropped candidate, for logs.
+    pub skipped: Vec<(String, String)>,
+}
+
+fn is_image(name: &str) -> bool {
+    let lower = name.to_ascii_lowercase();
+    [".jpg", ".jpeg", ".png"]
+        .iter()
+        .any(|ext| lower.ends_with(ext))
+}
+
+/// Lists `root` and indexes it as `dataset`.
+pub async fn index(root: &DataRoot, dataset: DatasetKind) -> Result<Indexed, IndexError> {
+    let listing = root.list().await?;
+    if listing.is_empty() {
+        return Err(IndexError::Empty {
+            dataset: dataset.name(),
+            uri: root.uri().to_string(),
+        });
+    }
+    let paths: Vec<&str> = listing.iter().map(|l| l.path.as_str()).collect();
+    let indexed = index_paths(dataset, &paths);
+    if indexed.manifest.sequences.is_empty() {
+        return Err(IndexError::NoSequences {
+            dataset: dataset.name(),
+            uri: root.uri().to_string(),
+            objects: paths.len(),
+            skipped: indexed.skipped.len(),
+        });
+    }
+    for (id, reason) in &indexed.skipped {
+        tracing::debug!(dataset = dataset.name(), sequence = %id, %reason, "sequence skipped");
+    }
+    Ok(indexed)
+}
+
+/// Indexes a listing (paths relative to the dataset root) as `dataset`.
+pub fn index_paths(dataset: DatasetKind, paths: &[&str]) -> Indexed {
+    let mut indexed = match dataset {
+        DatasetKind::Re10k => re10k(paths),
+        DatasetKind::Dl3dv => dl3dv(paths),
+        DatasetKind::Mvimgnet => category_layout(paths, dataset, |scene, name| {
+            !scene.is_empty() && name.len() == 7 && name[..3].bytes().all(|b| b.is_ascii_digit())
+        }),
+        DatasetKind::Co3dv2 => category_layout(paths, dataset, |sequence, name| {
+            sequence.starts_with(|c: char| c.is_ascii_digit()) && name.starts_with("frame")
+        }),
+    };
+    let (kept, short): (Vec<Sequence>, Vec<Sequence>) = indexed
+        .manifest
+        .sequences
+        .into_iter()
+        .partition(|s| s.frames.len() >= MIN_FRAMES);
+    indexed.skipped.extend(short.into_iter().map(|s| {
+        (
+            s.id,
+            format!("{} frames, fewer than {MIN_FRAMES}", s.frames.len()),
+        )
+    }));
+    indexed.manifest.sequences = kept;
+    indexed.manifest.sequences.sort_by(|a, b| a.id.cmp(&b.id));
+    indexed
+}
+
+fn re10k(paths: &[&str]) -> Indexed {
+    let mut frames: BTreeMap<(String, String), Vec<String>> = BTreeMap::new();
+    let cameras: BTreeSet<&str> = paths
+        .iter()
+        .copied()
+        .filter(|p| p.contains("/cameras/"))
+        .collect();
+    for path in paths {
+        let parts: Vec<&str> = path.split('/').collect();
+        if let [split @ ("train" | "test"), "images", sequence, name] = parts.as_slice()
+            && is_image(name)
+        {
+            frames
+                .entry((split.to_string(), sequence.to_string()))
+                .or_default()
+                .push(path.to_string());
+        }
+    }
+    let sequences = frames
+        .into_iter()
+        .map(|((split, sequence), mut files)| {
+            files.sort();
+            let camera = format!("{split}/cameras/{sequence}.txt");
+            Sequence {
+                dataset: DatasetKind::Re10k,
+                split: if split == "train" {
+                    Split::Train
+                } else {
+                    Split::Test
+                },
+                id: sequence,
+                frames: files,
+                poses: cameras.contains(camera.as_str()).then_some(camera),
+            }
+        })
+        .collect();
+    Indexed {
+        manifest: Manifest { sequences },
+        skipped: Vec::new(),
+    }
+}
+
+fn dl3dv(paths: &[&str]) -> Indexed {
+    let mut frames: BTreeMap<(String, String), Vec<String>> = BTreeMap::new();
+    let mut transforms: BTreeSet<(String, String)> = BTreeSet::new();
+    let mut benchmark: BTreeSet<String> = BTreeSet::new();
+    for path in paths {
+        let parts: Vec<&str> = path.split('/').collect();
+        match parts.as_slice() {
+            ["training_256", part, sequence, "images_8", name] if is_image(name) => frames
+                .entry((part.to_string(), sequence.to_string()))
+                .or_default()
+                .push(path.to_string()),
+            ["training_256", part, sequence, "transforms.json"] => {
+                transforms.insert((part.to_string(), sequence.to_string()));
+            }
+            ["test_256", "benchmark_960p", id, ..] => {
+                benchmark.insert(id.to_string());
+            }
+            _ => {}
+        }
+    }
+    let mut sequences = Vec::new();
+    let mut skipped = Vec::new();
+    for ((part, sequence), mut files) in frames {
+        let id = format!("{part}/{sequence}");
+        if !transforms.contains(&(part.clone(), sequence.clone())) {
+            skipped.push((id, "no transforms.json beside images_8".to_string()));
+            continue;
+        }
+        files.sort();
+        sequences.push(Sequence {
+            dataset: DatasetKind::Dl3dv,
+            split: if benchmark.contains(&sequence) {
+                Split::Test
+            } else {
+                Split::Train
+            },
+            id,
+            frames: files,
+            poses: Some(format!("training_256/{part}/{sequence}/transforms.json")),
+        });
+    }
+    Indexed {
+        manifest: Manifest { sequences },
+        skipped,
+    }
+}
+
+/// MVImgNet and CO3Dv2: `{category}/{sequence}/images/{frame}`, split 90/10 per category.
+fn category_layout(
+    paths: &[&str],
+    dataset: DatasetKind,
+    accepts: impl Fn(&str, &str) -> bool,
+) -> Indexed {
+    let mut frames: BTreeMap<(String, String), Vec<String>> = BTreeMap::new();
+    let mut sparse: BTreeSet<(String, String)> = BTreeSet::new();
+    let mut annotations: BTreeSet<String> = BTreeSet::new();
+    let mut skipped = Vec::new();
+    let mut rejected: BTreeSet<String> = BTreeSet::new();
+    for path in paths {
+        let parts: Vec<&str> = path.split('/').collect();
+        match parts.as_slice() {
+            [category, sequence, "images", name] if is_image(name) => {
+                if accepts(sequence, name) {
+                    frames
+                        .entry((category.to_string(), sequence.to_string()))
+                        .or_default()
+                        .push(path.to_string());
+                } else {
+                    rejected.insert(format!("{category}/{sequence}"));
+                }
+            }
+            [category, sequence, "sparse", ..] => {
+                sparse.insert((category.to_string(), sequence.to_string()));
+            }
+            [category, "frame_annotations.jgz"] => {
+                annotations.insert(category.to_string());
+            }
+            _ => {}
+        }
+    }
+    for id in rejected {
+        if !frames.keys().any(|(c, s)| format!("{c}/{s}") == id) {
+            skipped.push((
+                id,
+                format!("not a {} sequence or frame name", dataset.name()),
+            ));
+        }
+    }
+    let mut per_category: BTreeMap<String, Vec<(String, Vec<String>)>> = BTreeMap::new();
+    for ((category, sequence), mut files) in frames {
+        if dataset == DatasetKind::Mvimgnet
+            && !sparse.contains(&(category.clone(), sequence.clone()))
+        {
+            skipped.push((
+                format!("{category}/{sequence}"),
+                "no COLMAP sparse/ directory".to_string(),
+            ));
+            continue;
+        }
+        files.sort();
+        per_category
+            .entry(category)
+            .or_default()
+            .push((sequence, files));
+    }
+    let mut sequences = Vec::new();
+    for (category, members) in per_category {
+        let train = (members.len() as f64 * TRAIN_SHARE) as usize;
+        for (position, (sequence, files)) in members.into_iter().enumerate() {
+            let poses = match dataset {
+                DatasetKind::Mvimgnet => Some(format!("{category}/{sequence}/sparse")),
+                _ => annotations
+                    .contains(&category)
+                    .then(|| format!("{category}/frame_annotations.jgz")),
+            };
+            sequences.push(Sequence {
+                dataset,
+                split: if position < train {
+                    Split::Train
+                } else {
+                    Split::Test
+                },
+                id: format!("{category}/{sequence}"),
+                frames: files,
+                poses,
+            });
+        }
+    }
+    Indexed {
+        manifest: Manifest { sequences },
+        skipped,
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn frames(prefix: &str, count: usize, name: impl Fn(usize) -> String) -> Vec<String> {
+        (0..count)
+            .map(|i| format!("{prefix}/{}", name(i)))
+            .collect()
+    }
+
+    fn index_strings(dataset: DatasetKind, paths: &[String]) -> Indexed {
+        let refs: Vec<&str> = paths.iter().map(String::as_str).collect();
+        index_paths(dataset, &refs)
+    }
+
+    #[test]
+    fn re10k_splits_sorts_and_drops_short_sequences() {
+        let mut paths = frames("train/images/seqA", 12, |i| format!("{:03}.jpg", 11 - i));
+        paths.extend(frames("test/images/seqB", 10, |i| format!("{i:03}.png")));
+        paths.extend(frames("train/images/short", 9, |i| format!("{i:03}.jpg")));
+        paths.push("train/cameras/seqA.txt".to_string());
+        paths.push("train/images/seqA/notes.txt".to_string());
+        let indexed = index_strings(DatasetKind::Re10k, &paths);
+        let seqs = &indexed.manifest.sequences;
+        assert_eq!(seqs.len(), 2);
+        assert_eq!((seqs[0].id.as_str(), seqs[0].split), ("seqA", Split::Train));
+        assert_eq!(seqs[0].frames.len(), 12);
+        assert_eq!(seqs[0].frames[0], "train/images/seqA/000.jpg");
+        assert_eq!(seqs[0].poses.as_deref(), Some("train/cameras/seqA.txt"));
+        assert_eq!((seqs[1].id.as_str(), seqs[1].split), ("seqB", Split::Test));
+        assert_eq!(seqs[1].poses, None);
+        assert_eq!(
+            indexed.skipped,
+            vec![("short".to_string(), "9 frames, fewer than 10".to_string())]
+        );
+    }
+
+    #[test]
+    fn dl3dv_needs_transforms_and_excludes_the_benchmark_from_train() {
+        let mut paths = Vec::new();
+        for (sequence, with_transforms) in [("aaa", true), ("bbb", true), ("ccc", false)] {
+            paths.extend(frames(
+                &format!("training_256/1K/{sequence}/images_8"),
+                10,
+                |i| format!("frame_{i:05}.png"),
+            ));
+            if with_transforms {
+                paths.push(format!("training_256/1K/{sequence}/transforms.json"));
+            }
+        }
+        paths.push("test_256/benchmark_960p/bbb/images/x.png".to_string());
+        let indexed = index_strings(DatasetKind::Dl3dv, &paths);
+        let seqs = &indexed.manifest.sequences;
+        assert_eq!(seqs.len(), 2);
+        assert_eq!(
+            (seqs[0].id.as_str(), seqs[0].split),
+            ("1K/aaa", Split::Train)
+        );
+        assert_eq!(
+            (seqs[1].id.as_str(), seqs[1].split),
+            ("1K/bbb", Split::Test)
+        );
+        assert_eq!(
+            seqs[0].poses.as_deref(),
+            Some("training_256/1K/aaa/transforms.json")
+        );
+        assert_eq!(indexed.skipped[0].0, "1K/ccc");
+    }
+
+    #[test]
+    fn mvimgnet_needs_sparse_and_splits_ninety_ten_per_category() {
+        let mut paths = Vec::new();
+        for scene in 0..10 {
+            paths.extend(frames(&format!("chair/s{scene:02}/images"), 10, |i| {
+                format!("{i:03}.jpg")
+            }));
+            paths.push(format!("chair/s{scene:02}/sparse/0/cameras.bin"));
+        }
+        paths.extend(frames("chair/nosparse/images", 10, |i| {
+            format!("{i:03}.jpg")
+        }));
+        paths.extend(frames("chair/badnames/images", 10, |i| {
+            format!("img{i}.jpg")
+        }));
+        paths.push("chair/badnames/sparse/0/cameras.bin".to_string());
+        let indexed = index_strings(DatasetKind::Mvimgnet, &paths);
+        let seqs = &indexed.manifest.sequences;
+        assert_eq!(seqs.len(), 10);
+        assert_eq!(seqs.iter().filter(|s| s.split == Split::Train).count(), 9);
+        assert_eq!(seqs[9].id, "chair/s09");
+        assert_eq!(seqs[9].split, Split::Test);
+        let skipped: Vec<&str> = indexed.skipped.iter().map(|(id, _)| id.as_str()).collect();
+        assert!(
+            skipped.contains(&"chair/nosparse") && skipped.contains(&"chair/badnames"),
+            "{skipped:?}"
+        );
+    }
+
+    #[test]
+    fn co3d_keeps_digit_sequences_and_finds_annotations() {
+        let mut paths = Vec::new();
+        for sequence in ["106_12650_23736", "110_13051_23361", "aux_data"] {
+            paths.extend(frames(&format!("apple/{sequence}/images"), 12, |i| {
+                format!("frame{i:06}.jpg")
+            }));
+        }
+        paths.push("apple/frame_annotations.jgz".to_string());
+        let indexed = index_strings(DatasetKind::Co3dv2, &paths);
+        let seqs = &indexed.manifest.sequences;
+        assert_eq!(seqs.len(), 2);
+        assert_eq!(seqs[0].id, "apple/106_12650_23736");
+        assert_eq!(seqs[0].split, Split::Train);
+        assert_eq!(seqs[1].split, Split::Test, "first 90% of 2 is 1 sequence");
+        assert_eq!(
+            seqs[0].poses.as_deref(),
+            Some("apple/frame_annotations.jgz")
+        );
+        assert_eq!(indexed.skipped[0].0, "apple/aux_data");
+    }
+}

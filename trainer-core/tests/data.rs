@@ -1,0 +1,221 @@
+//! Indexing through object_store (in-memory, plain path, `file://`), error cases, and sampling
+//! batches from the two real example videos laid out as RE10K.
+
+mod common;
+
+use std::path::Path;
+
+use image::{ImageFormat, RgbImage};
+use trainer_core::data::index::{IndexError, index};
+use trainer_core::data::manifest::{DatasetKind, Split};
+use trainer_core::data::sampler::SamplerConfig;
+use trainer_core::data::source::{DatasetSource, IndexedDataset};
+use trainer_core::data::store::DataRoot;
+use trainer_core::trainer::{BatchSource, Samples};
+
+fn runtime() -> tokio::runtime::Runtime {
+    tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .unwrap()
+}
+
+fn png(seed: u8) -> Vec<u8> {
+    let image = RgbImage::from_fn(24, 16, |x, y| image::Rgb([x as u8 * 9, y as u8 * 13, seed]));
+    let mut bytes = std::io::Cursor::new(Vec::new());
+    image.write_to(&mut bytes, ImageFormat::Png).unwrap();
+    bytes.into_inner()
+}
+
+/// Writes a tiny tree of each layout into `root`.
+async fn write_trees(roots: &[(DatasetKind, &DataRoot)]) {
+    for (kind, root) in roots {
+        let mut files: Vec<String> = Vec::new();
+        match kind {
+            DatasetKind::Re10k => {
+                files.extend((0..10).map(|i| format!("train/images/abc/{i:03}.png")));
+                files.extend((0..4).map(|i| format!("train/images/tiny/{i:03}.png")));
+            }
+            DatasetKind::Dl3dv => {
+                files.extend((0..10).map(|i| format!("training_256/1K/seq/images_8/f{i:02}.png")));
+                files.push("training_256/1K/seq/transforms.json".into());
+            }
+            DatasetKind::Mvimgnet => {
+                files.extend((0..10).map(|i| format!("cup/s1/images/{i:03}.png")));
+                files.push("cup/s1/sparse/0/points3D.bin".into());
+            }
+            DatasetKind::Co3dv2 => {
+                files.extend((0..10).map(|i| format!("cup/1_2_3/images/frame{i:06}.png")));
+            }
+        }
+        for (i, file) in files.iter().enumerate() {
+            root.write(file, png(i as u8)).await.unwrap();
+        }
+    }
+}
+
+#[test]
+fn all_four_layouts_index_through_the_in_memory_store() {
+    let rt = runtime();
+    let roots: Vec<(DatasetKind, DataRoot)> = DatasetKind::ALL
+        .iter()
+        .map(|&k| (k, DataRoot::in_memory(k.name())))
+        .collect();
+    let refs: Vec<(DatasetKind, &DataRoot)> = roots.iter().map(|(k, r)| (*k, r)).collect();
+    rt.block_on(write_trees(&refs));
+    for (kind, root) in &roots {
+        let indexed = rt.block_on(index(root, *kind)).unwrap();
+        assert_eq!(indexed.manifest.sequences.len(), 1, "{kind:?}");
+        assert_eq!(indexed.manifest.sequences[0].frames.len(), 10);
+    }
+}
+
+#[test]
+fn local_paths_and_file_uris_index_the_same_tree() {
+    let rt = runtime();
+    let dir = tempfile::tempdir().unwrap();
+    let plain = DataRoot::open(dir.path().to_str().unwrap()).unwrap();
+    rt.block_on(write_trees(&[(DatasetKind::Re10k, &plain)]));
+    let uri = url::Url::from_directory_path(dir.path())
+        .unwrap()
+        .to_string();
+    let via_uri = DataRoot::open(&uri).unwrap();
+    let a = rt.block_on(index(&plain, DatasetKind::Re10k)).unwrap();
+    let b = rt.block_on(index(&via_uri, DatasetKind::Re10k)).unwrap();
+    assert_eq!(a.manifest, b.manifest);
+    assert_eq!(a.skipped.len(), 1, "the 4-frame sequence");
+}
+
+#[test]
+fn missing_empty_and_unreadable_roots_are_clear_errors() {
+    let rt = runtime();
+    let missing = DataRoot::open("/nonexistent/xfactor-data")
+        .unwrap_err()
+        .to_string();
+    assert!(missing.contains("/nonexistent/xfactor-data"), "{missing}");
+    let scheme = DataRoot::open("ftp://host/data").unwrap_err().to_string();
+    assert!(scheme.contains("ftp://host/data"), "{scheme}");
+    let dir = tempfile::tempdir().unwrap();
+    let empty = DataRoot::open(dir.path().to_str().unwrap()).unwrap();
+    let error = rt.block_on(index(&empty, DatasetKind::Co3dv2)).unwrap_err();
+    assert!(matches!(error, IndexError::Empty { .. }), "{error}");
+    let wrong = DataRoot::in_memory("memory://wrong-layout");
+    rt.block_on(write_trees(&[(DatasetKind::Re10k, &wrong)]));
+    let error = rt
+        .block_on(index(&wrong, DatasetKind::Dl3dv))
+        .unwrap_err()
+        .to_string();
+    assert!(
+        error.contains("memory://wrong-layout") && error.contains("no sequence"),
+        "{error}"
+    );
+}
+
+/// The example videos as `train/images/{target,transfer}/NNN.jpg` of an RE10K root.
+fn example_videos_as_re10k(rt: &tokio::runtime::Runtime) -> DataRoot {
+    let root = DataRoot::in_memory("memory://example-videos");
+    let videos = common::shared_fixture("example_videos");
+    for video in ["target", "transfer"] {
+        let mut names: Vec<_> = std::fs::read_dir(videos.join(video))
+            .unwrap()
+            .map(|e| e.unwrap().file_name().into_string().unwrap())
+            .collect();
+        names.sort();
+        for name in names {
+            let bytes = std::fs::read(Path::new(&videos).join(video).join(&name)).unwrap();
+            rt.block_on(root.write(&format!("train/images/{video}/{name}"), bytes))
+                .unwrap();
+        }
+    }
+    root
+}
+
+#[test]
+fn example_videos_index_as_re10k_and_sample_into_batches() {
+    let rt = runtime();
+    let root = example_videos_as_re10k(&rt);
+    let indexed = rt.block_on(index(&root, DatasetKind::Re10k)).unwrap();
+    let ids: Vec<&str> = indexed
+        .manifest
+        .sequences
+        .iter()
+        .map(|s| s.id.as_str())
+        .collect();
+    assert_eq!(ids, vec!["target", "transfer"]);
+    assert!(
+        indexed
+            .manifest
+            .sequences
+            .iter()
+            .all(|s| s.frames.len() == 30 && s.split == Split::Train)
+    );
+
+    let source = DatasetSource::new(
+        vec![IndexedDataset {
+            kind: DatasetKind::Re10k,
+            root,
+            manifest: indexed.manifest,
+        }],
+        SamplerConfig::stage1(),
+        Split::Train,
+        64,
+        0,
+    )
+    .unwrap();
+    let Samples::Pairs(pairs) = source.samples(0, 0, 4).unwrap() else {
+        panic!("stage-1 sampler gives pairs");
+    };
+    assert_eq!(pairs.len(), 4);
+    for (a, b) in &pairs {
+        assert_eq!((a.height, a.width, a.pixels.len()), (64, 64, 64 * 64 * 3));
+        assert_ne!(a.pixels, b.pixels, "two different frames");
+    }
+    let again = source.samples(0, 0, 4).unwrap();
+    let Samples::Pairs(again) = again else {
+        unreachable!()
+    };
+    assert_eq!(pairs[3].0.pixels, again[3].0.pixels, "deterministic");
+    assert_eq!(source.skipped_frames(), 0);
+}
+
+#[test]
+fn corrupt_frames_are_skipped_and_counted() {
+    let rt = runtime();
+    let root = DataRoot::in_memory("memory://corrupt");
+    for i in 0..12 {
+        let bytes = if i % 3 == 0 {
+            b"garbage".to_vec()
+        } else {
+            png(i)
+        };
+        rt.block_on(root.write(&format!("train/images/seq/{i:03}.png"), bytes))
+            .unwrap();
+    }
+    let indexed = rt.block_on(index(&root, DatasetKind::Re10k)).unwrap();
+    let source = DatasetSource::new(
+        vec![IndexedDataset {
+            kind: DatasetKind::Re10k,
+            root,
+            manifest: indexed.manifest,
+        }],
+        SamplerConfig::stage1(),
+        Split::Train,
+        16,
+        0,
+    )
+    .unwrap();
+    let Samples::Pairs(pairs) = source.samples(0, 0, 8).unwrap() else {
+        unreachable!()
+    };
+    assert_eq!(pairs.len(), 8);
+    assert!(
+        source.skipped_frames() > 0,
+        "some draws hit a corrupt frame"
+    );
+    for (a, _) in &pairs {
+        assert!(
+            a.pixels.iter().any(|&v| v != a.pixels[0]),
+            "never a blank image"
+        );
+    }
+}
