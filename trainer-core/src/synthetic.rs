@@ -2,6 +2,8 @@
 //! motion exists in many places. It feeds the trainer in tests, demos and evaluation.
 
 use crate::augment::Image;
+use crate::data::manifest::Split;
+use crate::data::store::{DataRoot, StoreError};
 use crate::rng::Stream;
 use crate::scenes::{CameraPose, Scene, SceneConfig, Trajectory};
 use crate::trainer::{BatchSource, Samples};
@@ -103,6 +105,86 @@ impl SyntheticDataset {
         indices.sort_unstable();
         (sequence, indices)
     }
+}
+
+/// Why a generated dataset could not be written.
+#[derive(Debug, thiserror::Error)]
+pub enum WriteError {
+    /// Encoding a frame failed.
+    #[error("encoding {path}: {reason}")]
+    Encode {
+        /// Object being written.
+        path: String,
+        /// The encoder's error.
+        reason: String,
+    },
+    /// The store refused a write.
+    #[error(transparent)]
+    Store(#[from] StoreError),
+}
+
+impl SyntheticDataset {
+    /// Writes every sequence in the RE10K layout under `root`:
+    /// `{split}/images/s{scene}_t{trajectory}/NNN.png` and the camera file
+    /// `{split}/cameras/s{scene}_t{trajectory}.txt` (RE10K's format: a header line, then per
+    /// frame `timestamp fx fy cx cy 0 0` with normalised intrinsics and the 3x4 world-to-camera
+    /// matrix, row-major). Returns the number of frames written.
+    pub async fn write_re10k(
+        &self,
+        root: &DataRoot,
+        split: Split,
+        fov_degrees: f64,
+    ) -> Result<usize, WriteError> {
+        let split = match split {
+            Split::Train => "train",
+            Split::Test => "test",
+        };
+        let focal = 0.5 / (fov_degrees.to_radians() / 2.0).tan();
+        let mut written = 0;
+        for sequence in &self.sequences {
+            let name = format!("s{}_t{}", sequence.scene, sequence.trajectory);
+            let mut cameras = format!("generated://xfactor-dist/{name}\n");
+            for (index, (frame, pose)) in sequence.frames.iter().zip(&sequence.poses).enumerate() {
+                let path = format!("{split}/images/{name}/{index:03}.png");
+                root.write(
+                    &path,
+                    encode_png(frame).map_err(|reason| WriteError::Encode {
+                        path: path.clone(),
+                        reason,
+                    })?,
+                )
+                .await?;
+                let matrix = pose.matrix();
+                let values: Vec<String> = matrix[..3]
+                    .iter()
+                    .flat_map(|row| row.iter().map(|v| format!("{v:.9}")))
+                    .collect();
+                cameras.push_str(&format!(
+                    "{index} {focal:.9} {focal:.9} 0.5 0.5 0 0 {}\n",
+                    values.join(" ")
+                ));
+                written += 1;
+            }
+            root.write(&format!("{split}/cameras/{name}.txt"), cameras.into_bytes())
+                .await?;
+        }
+        Ok(written)
+    }
+}
+
+fn encode_png(frame: &Image) -> Result<Vec<u8>, String> {
+    let bytes: Vec<u8> = frame
+        .pixels
+        .iter()
+        .map(|v| ((v + 1.0) * 127.5).round().clamp(0.0, 255.0) as u8)
+        .collect();
+    let image = image::RgbImage::from_raw(frame.width as u32, frame.height as u32, bytes)
+        .ok_or_else(|| "pixel buffer does not match the frame size".to_string())?;
+    let mut out = std::io::Cursor::new(Vec::new());
+    image
+        .write_to(&mut out, image::ImageFormat::Png)
+        .map_err(|e| e.to_string())?;
+    Ok(out.into_inner())
 }
 
 impl BatchSource for SyntheticDataset {
