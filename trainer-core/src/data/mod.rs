@@ -4,6 +4,7 @@
 pub mod decode;
 pub mod index;
 pub mod manifest;
+pub mod prefetch;
 pub mod sampler;
 pub mod shard;
 pub mod source;
