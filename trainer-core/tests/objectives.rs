@@ -25,17 +25,7 @@ fn sliding_pair(stream: &mut Stream) -> (Image, Image) {
         .map(|_| stream.uniform_in(0.0, std::f64::consts::TAU))
         .collect();
     let shift = stream.uniform_in(-3.0, 3.0);
-    let frame = |offset: f64| Image {
-        height: SIDE,
-        width: SIDE,
-        pixels: (0..SIDE * SIDE * 3)
-            .map(|i| {
-                let (y, x, c) = ((i / 3) / SIDE, (i / 3) % SIDE, i % 3);
-                let x = x as f64 + offset;
-                (0.6 * (0.4 * x + phases[c]).sin() * (0.3 * y as f64 + phases[c + 3]).cos()) as f32
-            })
-            .collect(),
-    };
+    let frame = |offset: f64| common::sliding_frame(&phases, offset, SIDE);
     (frame(0.0), frame(shift))
 }
 

@@ -1,5 +1,7 @@
 //! The single-process trainer: exact resume, accumulation equivalence, refusal without LPIPS.
 
+mod common;
+
 use burn::module::{Module, ModuleVisitor, Param};
 use burn::optim::GradientsParams;
 use burn::tensor::{Device, Tensor};
@@ -15,17 +17,7 @@ use trainer_core::{XFactor, XFactorConfig};
 const SIDE: usize = 16;
 
 fn frame(phases: &[f64], offset: f64) -> Image {
-    Image {
-        height: SIDE,
-        width: SIDE,
-        pixels: (0..SIDE * SIDE * 3)
-            .map(|i| {
-                let (y, x, c) = ((i / 3) / SIDE, (i / 3) % SIDE, i % 3);
-                let x = x as f64 + offset;
-                (0.6 * (0.4 * x + phases[c]).sin() * (0.3 * y as f64 + phases[c + 3]).cos()) as f32
-            })
-            .collect(),
-    }
+    common::sliding_frame(phases, offset, SIDE)
 }
 
 /// Sliding-camera samples that depend only on `(step, sample)`.
