@@ -7,7 +7,7 @@ use std::path::Path;
 
 use image::{ImageFormat, RgbImage};
 use trainer_core::data::index::{IndexError, index};
-use trainer_core::data::manifest::{DatasetKind, Split};
+use trainer_core::data::manifest::{DatasetKind, Manifest, Split};
 use trainer_core::data::sampler::SamplerConfig;
 use trainer_core::data::source::{DatasetSource, IndexedDataset};
 use trainer_core::data::store::DataRoot;
@@ -130,6 +130,23 @@ fn example_videos_as_re10k(rt: &tokio::runtime::Runtime) -> DataRoot {
     root
 }
 
+/// A stage-1 training source over one RE10K root, at `size x size`.
+fn stage1_re10k_source(root: DataRoot, manifest: Manifest, size: usize) -> DatasetSource {
+    let dataset = IndexedDataset {
+        kind: DatasetKind::Re10k,
+        root,
+        manifest,
+    };
+    DatasetSource::new(
+        vec![dataset],
+        SamplerConfig::stage1(),
+        Split::Train,
+        size,
+        0,
+    )
+    .unwrap()
+}
+
 #[test]
 fn example_videos_index_as_re10k_and_sample_into_batches() {
     let rt = runtime();
@@ -150,18 +167,7 @@ fn example_videos_index_as_re10k_and_sample_into_batches() {
             .all(|s| s.frames.len() == 30 && s.split == Split::Train)
     );
 
-    let source = DatasetSource::new(
-        vec![IndexedDataset {
-            kind: DatasetKind::Re10k,
-            root,
-            manifest: indexed.manifest,
-        }],
-        SamplerConfig::stage1(),
-        Split::Train,
-        64,
-        0,
-    )
-    .unwrap();
+    let source = stage1_re10k_source(root, indexed.manifest, 64);
     let Samples::Pairs(pairs) = source.samples(0, 0, 4).unwrap() else {
         panic!("stage-1 sampler gives pairs");
     };
@@ -192,18 +198,7 @@ fn corrupt_frames_are_skipped_and_counted() {
             .unwrap();
     }
     let indexed = rt.block_on(index(&root, DatasetKind::Re10k)).unwrap();
-    let source = DatasetSource::new(
-        vec![IndexedDataset {
-            kind: DatasetKind::Re10k,
-            root,
-            manifest: indexed.manifest,
-        }],
-        SamplerConfig::stage1(),
-        Split::Train,
-        16,
-        0,
-    )
-    .unwrap();
+    let source = stage1_re10k_source(root, indexed.manifest, 16);
     let Samples::Pairs(pairs) = source.samples(0, 0, 8).unwrap() else {
         unreachable!()
     };
