@@ -1,13 +1,10 @@
 #!/usr/bin/env bash
-# The main command. Today: checks the model against the authors' fixture on both backends and
-# prints the stage-1 step benchmark. It grows into the local coordinator + two workers run.
+# The main command: a coordinator and two CPU worker processes on loopback train XFactor through
+# stage 1 and stage 2 on a small generated RE10K-layout dataset (in ./xfactor-local-run), then
+# print the job's figures. Extra arguments go to xfactor-local (e.g. --stage1-steps 40).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup.sh
 source scripts/env.sh
-fixture="${XFACTOR_SHARED:-../shared}/fixtures/xfactor-tiny.safetensors"
-cargo build --release -p trainer-core --bins
-for backend in cpu wgpu; do
-    "$CARGO_TARGET_DIR/release/xfactor-check" "$fixture" --backend "$backend"
-done
-cargo bench -p trainer-core --bench model_step -- --backend cpu "$@"
+cargo build --release -p coordinator -p worker --bins
+"$CARGO_TARGET_DIR/release/xfactor-local" "$@"

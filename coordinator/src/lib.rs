@@ -1,3 +1,11 @@
-//! The coordinator that schedules XFactor's two training stages across worker daemons.
+//! The coordinator: reads the cluster YAML, indexes and shards the data, admits workers, and
+//! runs stage 1 then stage 2 across them, re-forming the group when a worker is lost.
 //!
-//! Built with the distributed runtime (issue 5); the crate holds no code yet.
+//! It knows jobs, workers, steps and checkpoints, never tensors: model and data settings pass
+//! through to the workers as the configuration types of `trainer-core`.
+
+pub mod config;
+pub mod job;
+pub mod local;
+pub mod plan;
+pub mod service;

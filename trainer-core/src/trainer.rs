@@ -211,20 +211,33 @@ impl Trainer {
     }
 
     /// The loss and gradients of the current step's global batch, accumulated over micro-batches
-    /// (each split into shards), without touching the model. Data-parallel workers all-reduce
-    /// these before [`Trainer::apply_gradients`].
+    /// (each split into shards), without touching the model.
     pub fn batch_gradients(
         &self,
         source: &dyn BatchSource,
     ) -> Result<(f32, GradientsParams), TrainError> {
+        self.slice_gradients(source, 0, self.config.global_batch)
+    }
+
+    /// This process's share of the current step: the loss and gradients of global samples
+    /// `first .. first + count`, each weighted `1 / global_batch`, so that summing the shares of
+    /// all data-parallel ranks (the all-reduce) gives exactly [`Trainer::batch_gradients`].
+    /// The last micro-batch may be smaller than `micro_batch`.
+    pub fn slice_gradients(
+        &self,
+        source: &dyn BatchSource,
+        first: u64,
+        count: usize,
+    ) -> Result<(f32, GradientsParams), TrainError> {
         let step = self.step;
-        let _span = tracing::info_span!("batch_gradients", step).entered();
+        let _span = tracing::info_span!("slice_gradients", step, first, count).entered();
         let micro = self.config.micro_batch;
-        let share = micro as f64 / self.config.global_batch as f64;
         let mut total_loss = 0.0;
         let mut accumulated: Option<GradientsParams> = None;
-        for first in (0..self.config.global_batch).step_by(micro) {
-            let batch = self.assemble(source, step, first as u64, micro)?;
+        for offset in (0..count).step_by(micro) {
+            let size = micro.min(count - offset);
+            let share = size as f64 / self.config.global_batch as f64;
+            let batch = self.assemble(source, step, first + offset as u64, size)?;
             let (loss, grads) = self.micro_batch_gradients(&batch, share);
             total_loss += loss;
             accumulated = Some(match accumulated {
@@ -233,6 +246,16 @@ impl Trainer {
             });
         }
         Ok((total_loss, accumulated.unwrap_or_default()))
+    }
+
+    /// The model configuration being trained.
+    pub fn model_config(&self) -> &XFactorConfig {
+        &self.model_config
+    }
+
+    /// The device the model lives on.
+    pub fn device(&self) -> &Device {
+        &self.device
     }
 
     /// Applies one optimiser update with the current step's learning rate and advances the step.

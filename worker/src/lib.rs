@@ -1,3 +1,11 @@
-//! The worker daemon that trains XFactor data-parallel under a coordinator.
+//! The worker daemon: registers with the coordinator, trains its rank of each assigned group
+//! with `trainer-core`, all-reduces gradients with its peers over gRPC, and writes the
+//! checkpoints it is asked to.
 //!
-//! Built with the distributed runtime (issue 5); the crate holds no code yet.
+//! It knows ranks, flat gradient vectors and files, never attention heads: the model is built
+//! and stepped through `trainer-core`'s public API.
+
+pub mod bench;
+pub mod checkpoints;
+pub mod collective;
+pub mod daemon;

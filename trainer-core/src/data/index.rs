@@ -71,14 +71,28 @@ fn is_image(name: &str) -> bool {
 /// Lists `root` and indexes it as `dataset`.
 pub async fn index(root: &DataRoot, dataset: DatasetKind) -> Result<Indexed, IndexError> {
     let listing = root.list().await?;
-    if listing.is_empty() {
+    let paths: Vec<&str> = listing
+        .iter()
+        .map(|l| l.path.as_str())
+        .filter(|p| !p.starts_with(super::cache::CACHE_DIR))
+        .collect();
+    check_indexed(root, dataset, &paths, index_paths(dataset, &paths))
+}
+
+/// Turns an empty listing or one without usable sequences into an error naming the root, and
+/// logs every sequence the rules dropped.
+pub(crate) fn check_indexed(
+    root: &DataRoot,
+    dataset: DatasetKind,
+    paths: &[&str],
+    indexed: Indexed,
+) -> Result<Indexed, IndexError> {
+    if paths.is_empty() {
         return Err(IndexError::Empty {
             dataset: dataset.name(),
             uri: root.uri().to_string(),
         });
     }
-    let paths: Vec<&str> = listing.iter().map(|l| l.path.as_str()).collect();
-    let indexed = index_paths(dataset, &paths);
     if indexed.manifest.sequences.is_empty() {
         return Err(IndexError::NoSequences {
             dataset: dataset.name(),

@@ -1,6 +1,7 @@
 //! The aggregate dataset: manifests of sequences, the window sampler with its curriculum and
 //! mixture, and sharding of sequences across ranks.
 
+pub mod cache;
 pub mod decode;
 pub mod index;
 pub mod manifest;
@@ -8,6 +9,7 @@ pub mod prefetch;
 pub mod sampler;
 pub mod shard;
 pub mod source;
+pub mod spec;
 pub mod store;
 
 pub use manifest::{DatasetKind, Manifest, Sequence, Split};

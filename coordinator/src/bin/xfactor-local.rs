@@ -1,0 +1,88 @@
+//! `xfactor-local`: the whole system on one machine: generates a small RE10K-layout dataset,
+//! writes its cluster YAML, and runs a coordinator and worker processes on loopback through
+//! both stages.
+
+use std::path::PathBuf;
+use std::time::Instant;
+
+use anyhow::{Context, bail};
+use coordinator::local::{LocalJob, free_port};
+use trainer_core::cli::{Flags, init_logging};
+
+const USAGE: &str = "usage: xfactor-local [--dir DIR] [--workers N] [--stage1-steps N] [--stage2-steps N]";
+
+fn main() -> anyhow::Result<()> {
+    let args: Vec<String> = std::env::args().skip(1).collect();
+    let flags = Flags::parse(&args, &[], &["dir", "workers", "stage1-steps", "stage2-steps"])
+        .map_err(|e| anyhow::anyhow!("{e}\n{USAGE}"))?;
+    init_logging(None).map_err(anyhow::Error::msg)?;
+    let dir = PathBuf::from(flags.get("dir").unwrap_or("xfactor-local-run"));
+    let mut job = LocalJob::new(&dir, free_port()?);
+    let number = |name: &str, default: u64| -> anyhow::Result<u64> {
+        flags
+            .get(name)
+            .map_or(Ok(default), |v| v.parse().with_context(|| format!("--{name} `{v}`")))
+    };
+    job.workers = number("workers", 2)? as usize;
+    job.stage1_steps = number("stage1-steps", job.stage1_steps)?;
+    job.stage2_steps = number("stage2-steps", job.stage2_steps)?;
+    if job.checkpoint_dir().exists() {
+        std::fs::remove_dir_all(job.checkpoint_dir())?;
+    }
+    let runtime = tokio::runtime::Runtime::new()?;
+    runtime.block_on(job.prepare())?;
+    let binaries = std::env::current_exe()?
+        .parent()
+        .context("the binary has no folder")?
+        .to_path_buf();
+    let started = Instant::now();
+    let mut coordinator = job.spawn_coordinator(&binaries)?;
+    let mut workers = (0..job.workers)
+        .map(|i| job.spawn_worker(&binaries, i))
+        .collect::<anyhow::Result<Vec<_>>>()?;
+    tracing::info!(
+        dir = %dir.display(),
+        workers = job.workers,
+        "coordinator and workers started; logs in coordinator.log and worker-*.log"
+    );
+    let status = coordinator.wait()?;
+    for worker in &mut workers {
+        if status.success() {
+            worker.wait()?;
+        } else {
+            let _ = worker.kill();
+        }
+    }
+    if !status.success() {
+        bail!("the coordinator failed ({status}); see {}/coordinator.log", dir.display());
+    }
+    let report: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(job.report_path())?)?;
+    let steps = report["steps"].as_array().map_or(0, Vec::len);
+    let last_loss = |stage: u64| {
+        report["steps"]
+            .as_array()
+            .and_then(|s| s.iter().rev().find(|r| r["stage"] == stage))
+            .map_or(f64::NAN, |r| r["loss"].as_f64().unwrap_or(f64::NAN))
+    };
+    let first_loss = |stage: u64| {
+        report["steps"]
+            .as_array()
+            .and_then(|s| s.iter().find(|r| r["stage"] == stage))
+            .map_or(f64::NAN, |r| r["loss"].as_f64().unwrap_or(f64::NAN))
+    };
+    println!(
+        "outcome={} workers={} steps={steps} stage1_loss={:.4}->{:.4} stage2_loss={:.4}->{:.4} restarts={} checksum_mismatches={} seconds={:.1} report={}",
+        report["outcome"].as_str().unwrap_or("?"),
+        job.workers,
+        first_loss(1),
+        last_loss(1),
+        first_loss(2),
+        last_loss(2),
+        report["restarts"],
+        report["checksum_mismatches"].as_array().map_or(0, Vec::len),
+        started.elapsed().as_secs_f64(),
+        job.report_path().display()
+    );
+    Ok(())
+}

@@ -1,0 +1,193 @@
+//! The local harness: a generated RE10K-layout dataset, a cluster YAML for it, and a
+//! coordinator plus worker processes on loopback. The README's main command and the
+//! integration tests run jobs this way.
+
+use std::fmt::Write as _;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+
+use trainer_core::data::Split;
+use trainer_core::data::store::DataRoot;
+use trainer_core::scenes::SceneConfig;
+use trainer_core::synthetic::SyntheticDataset;
+
+/// Size of a local job.
+#[derive(Debug, Clone)]
+pub struct LocalJob {
+    /// Folder holding data, YAML, checkpoints, report and logs.
+    pub dir: PathBuf,
+    /// Worker processes.
+    pub workers: usize,
+    /// Fewest workers the job may continue with.
+    pub minimum: usize,
+    /// Generated scenes (each rendered along every trajectory).
+    pub scenes: u64,
+    /// Generated camera paths.
+    pub trajectories: u64,
+    /// Frames per sequence (at least 10, the indexers' minimum).
+    pub frames: usize,
+    /// Training resolution.
+    pub image_size: usize,
+    /// Stage-1 steps.
+    pub stage1_steps: u64,
+    /// Stage-2 steps.
+    pub stage2_steps: u64,
+    /// Samples per step.
+    pub global_batch: u64,
+    /// Samples per forward pass per worker.
+    pub micro_batch: u64,
+    /// Commit every this many steps.
+    pub checkpoint_every: u64,
+    /// Coordinator port.
+    pub port: u16,
+    /// Seed of data and training.
+    pub seed: u64,
+    /// Use in-memory generated scenes instead of a stored dataset.
+    pub in_memory: bool,
+}
+
+impl LocalJob {
+    /// A laptop-sized default: 2 workers, 4 scenes x 4 paths of 12 frames at 32x32, 20 + 10
+    /// steps of 8 samples.
+    pub fn new(dir: &Path, port: u16) -> Self {
+        Self {
+            dir: dir.to_path_buf(),
+            workers: 2,
+            minimum: 1,
+            scenes: 4,
+            trajectories: 4,
+            frames: 12,
+            image_size: 32,
+            stage1_steps: 20,
+            stage2_steps: 10,
+            global_batch: 8,
+            micro_batch: 4,
+            checkpoint_every: 5,
+            port,
+            seed: 7,
+            in_memory: false,
+        }
+    }
+
+    /// The job token (fixed per folder; local jobs are loopback-only).
+    pub fn token(&self) -> &'static str {
+        "local-harness-token"
+    }
+
+    /// Path of the cluster YAML.
+    pub fn config_path(&self) -> PathBuf {
+        self.dir.join("cluster.yaml")
+    }
+
+    /// Path of the job report.
+    pub fn report_path(&self) -> PathBuf {
+        self.dir.join("report.json")
+    }
+
+    /// Where checkpoints go.
+    pub fn checkpoint_dir(&self) -> PathBuf {
+        self.dir.join("checkpoints")
+    }
+
+    /// Writes the generated dataset (unless in memory) and the cluster YAML.
+    pub async fn prepare(&self) -> anyhow::Result<()> {
+        std::fs::create_dir_all(&self.dir)?;
+        let data_dir = self.dir.join("data");
+        if !self.in_memory && !data_dir.exists() {
+            let scene = SceneConfig {
+                image_size: self.image_size,
+                ..SceneConfig::default()
+            };
+            let dataset = SyntheticDataset::generate(
+                self.seed,
+                self.scenes,
+                self.trajectories,
+                self.frames,
+                &scene,
+            );
+            let root = DataRoot::open(&data_dir.display().to_string())?;
+            let frames = dataset.write_re10k(&root, Split::Train, scene.fov_degrees).await?;
+            tracing::info!(frames, dir = %data_dir.display(), "generated RE10K-layout dataset");
+        }
+        std::fs::write(self.config_path(), self.yaml(&data_dir))?;
+        Ok(())
+    }
+
+    fn yaml(&self, data_dir: &Path) -> String {
+        let mut yaml = String::new();
+        let _ = writeln!(yaml, "job: local-demo");
+        let _ = writeln!(yaml, "seed: {}", self.seed);
+        let _ = writeln!(yaml, "listen: 127.0.0.1:{}", self.port);
+        let _ = writeln!(yaml, "auth:\n  token: {}", self.token());
+        let _ = writeln!(yaml, "model:\n  preset: tiny\n  image_size: {}", self.image_size);
+        if self.in_memory {
+            let _ = writeln!(
+                yaml,
+                "data:\n  generated:\n    scenes: {}\n    trajectories: {}\n    frames: {}",
+                self.scenes, self.trajectories, self.frames
+            );
+        } else {
+            let window = self.frames as u64;
+            let _ = writeln!(
+                yaml,
+                "data:\n  datasets:\n    - kind: re10k\n      uri: {}\n      stage1: {{weight: 1, window_begin: 2, window_end: {window}}}\n      stage2: {{weight: 1, window_begin: 6, window_end: {window}}}",
+                data_dir.display()
+            );
+        }
+        for (stage, steps) in [(1, self.stage1_steps), (2, self.stage2_steps)] {
+            let _ = writeln!(
+                yaml,
+                "stage{stage}:\n  steps: {steps}\n  global_batch: {}\n  micro_batch: {}\n  lpips_weight: 0\n  curriculum_steps: {steps}\n  schedule: {{initial_lr: 1.0e-4, peak_lr: 1.0e-3, final_lr: 1.0e-4, warmup_steps: 2, total_steps: {steps}}}",
+                self.global_batch, self.micro_batch
+            );
+        }
+        let _ = writeln!(
+            yaml,
+            "checkpoint:\n  uri: {}\n  every: {}",
+            self.checkpoint_dir().display(),
+            self.checkpoint_every
+        );
+        let _ = writeln!(
+            yaml,
+            "workers:\n  expected: {}\n  minimum: {}\n  device: cpu\n  threads: 1\n  heartbeat_interval_s: 0.25\n  heartbeat_timeout_s: 3\n  regroup_grace_s: 1\n  quorum_timeout_s: 120",
+            self.workers, self.minimum
+        );
+        yaml
+    }
+
+    /// Starts the coordinator process (its log goes to `coordinator.log`).
+    pub fn spawn_coordinator(&self, binaries: &Path) -> anyhow::Result<Child> {
+        let log = std::fs::File::create(self.dir.join("coordinator.log"))?;
+        Ok(Command::new(binaries.join("xfactor-coordinator"))
+            .arg("run")
+            .arg("--config")
+            .arg(self.config_path())
+            .arg("--report")
+            .arg(self.report_path())
+            .stdout(Stdio::null())
+            .stderr(log)
+            .spawn()?)
+    }
+
+    /// Starts worker process number `index` (its log goes to `worker-<index>.log`).
+    pub fn spawn_worker(&self, binaries: &Path, index: usize) -> anyhow::Result<Child> {
+        let log = std::fs::File::create(self.dir.join(format!("worker-{index}.log")))?;
+        Ok(Command::new(binaries.join("xfactor-worker"))
+            .arg("--coordinator")
+            .arg(format!("http://127.0.0.1:{}", self.port))
+            .arg("--token")
+            .arg(self.token())
+            .arg("--name")
+            .arg(format!("local-{index}"))
+            .arg("--scratch")
+            .arg(self.dir.join("scratch"))
+            .stdout(Stdio::null())
+            .stderr(log)
+            .spawn()?)
+    }
+}
+
+/// A free TCP port on loopback (bound then released; fine for local runs and tests).
+pub fn free_port() -> std::io::Result<u16> {
+    Ok(std::net::TcpListener::bind("127.0.0.1:0")?.local_addr()?.port())
+}

@@ -1,0 +1,101 @@
+//! `xfactor-coordinator`: runs a job from a cluster YAML, or prints a running job's status.
+
+use std::path::Path;
+
+use anyhow::{Context, bail};
+use trainer_core::cli::{Flags, init_logging};
+use coordinator::config::ClusterConfig;
+use coordinator::plan::Plan;
+use coordinator::service::CoordinatorService;
+use proto::v1::StatusRequest;
+use proto::v1::coordinator_client::CoordinatorClient;
+
+const USAGE: &str = "usage:
+  xfactor-coordinator run --config CLUSTER.yaml [--dry-run] [--report REPORT.json] [--log-format human|json]
+  xfactor-coordinator status --address http://HOST:PORT (--token TOKEN | --token-env VAR)";
+
+fn main() -> anyhow::Result<()> {
+    let args: Vec<String> = std::env::args().skip(1).collect();
+    let Some((command, rest)) = args.split_first() else {
+        bail!("{USAGE}");
+    };
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()?;
+    match command.as_str() {
+        "run" => {
+            let flags = Flags::parse(rest, &["dry-run"], &["config", "report", "log-format"])
+                .map_err(|e| anyhow::anyhow!("{e}\n{USAGE}"))?;
+            init_logging(flags.get("log-format")).map_err(anyhow::Error::msg)?;
+            runtime.block_on(run(&flags))
+        }
+        "status" => {
+            let flags = Flags::parse(rest, &[], &["address", "token", "token-env"])
+                .map_err(|e| anyhow::anyhow!("{e}\n{USAGE}"))?;
+            runtime.block_on(status(&flags))
+        }
+        other => bail!("unknown command `{other}`\n{USAGE}"),
+    }
+}
+
+async fn run(flags: &Flags) -> anyhow::Result<()> {
+    let path = flags.require("config").map_err(anyhow::Error::msg)?;
+    let config = ClusterConfig::from_file(Path::new(path))?;
+    let token = config.auth.resolve().map_err(anyhow::Error::msg)?;
+    let plan = Plan::build(config).await?;
+    if flags.has("dry-run") {
+        print!("{}", plan.describe());
+        return Ok(());
+    }
+    let service = CoordinatorService::new(plan).await?;
+    let shutdown = async {
+        let mut terminate =
+            match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+                Ok(signal) => signal,
+                Err(_) => return std::future::pending().await,
+            };
+        tokio::select! {
+            _ = terminate.recv() => {}
+            _ = tokio::signal::ctrl_c() => {}
+        }
+    };
+    let report = service.run(&token, shutdown).await?;
+    let json = serde_json::to_string_pretty(&report)?;
+    if let Some(path) = flags.get("report") {
+        std::fs::write(path, &json).with_context(|| format!("writing the report to {path}"))?;
+    }
+    tracing::info!(outcome = %report.outcome, restarts = report.restarts, mismatches = report.checksum_mismatches.len(), "job ended");
+    if !report.checksum_mismatches.is_empty() {
+        bail!("ranks disagreed on parameters: {:?}", report.checksum_mismatches);
+    }
+    Ok(())
+}
+
+async fn status(flags: &Flags) -> anyhow::Result<()> {
+    let address = flags.require("address").map_err(anyhow::Error::msg)?;
+    let token = match (flags.get("token"), flags.get("token-env")) {
+        (Some(token), _) => token.to_string(),
+        (None, Some(var)) => std::env::var(var).with_context(|| format!("{var} is not set"))?,
+        (None, None) => bail!("give --token or --token-env"),
+    };
+    let channel = tonic::transport::Endpoint::from_shared(address.to_string())?
+        .connect()
+        .await
+        .with_context(|| format!("cannot reach the coordinator at {address}"))?;
+    let mut client = CoordinatorClient::with_interceptor(channel, proto::AttachToken::new(&token)?);
+    let status = client.status(StatusRequest {}).await?.into_inner();
+    println!(
+        "job={} phase={} generation={} workers={} step={}/{} last_loss={} restarts={} last_commit={}",
+        status.job_name,
+        status.phase,
+        status.generation,
+        status.workers,
+        status.step,
+        status.total_steps,
+        status.last_loss,
+        status.restarts,
+        if status.last_commit.is_empty() { "-" } else { &status.last_commit }
+    );
+    Ok(())
+}

@@ -1,0 +1,268 @@
+//! The resolved plan of a job: the model, each stage's trainer settings and data (datasets
+//! indexed through their manifest caches), and how the expected workers split the data.
+
+use std::fmt::Write as _;
+
+use trainer_core::XFactorConfig;
+use trainer_core::data::cache::{CacheUse, load_or_index};
+use trainer_core::data::spec::{
+    DataSource, DataSpec, StoredDataset, rank_slice, shard_ids, steps_per_epoch,
+};
+use trainer_core::data::store::DataRoot;
+use trainer_core::data::{DatasetKind, Manifest, Split};
+use trainer_core::trainer::{StageObjective, TrainConfig};
+
+use crate::config::{ClusterConfig, DataConfig};
+
+/// Why a plan could not be made.
+#[derive(Debug, thiserror::Error)]
+pub enum PlanError {
+    /// The model section is invalid.
+    #[error("{0}")]
+    Model(String),
+    /// A dataset could not be indexed.
+    #[error("data.datasets[{index}] ({kind} at {uri}): {reason}")]
+    Dataset {
+        /// Position in the YAML list.
+        index: usize,
+        /// Its kind.
+        kind: &'static str,
+        /// Its root.
+        uri: String,
+        /// What failed.
+        reason: String,
+    },
+}
+
+/// One stage, resolved.
+#[derive(Debug, Clone)]
+pub struct StagePlan {
+    /// 1 or 2.
+    pub stage: u32,
+    /// Optimiser steps.
+    pub steps: u64,
+    /// Trainer settings sent to workers (threads are the worker's own choice).
+    pub train: TrainConfig,
+    /// Data sent to workers.
+    pub data: DataSpec,
+    /// LPIPS weights file, when the objective uses LPIPS.
+    pub lpips_weights: Option<String>,
+}
+
+/// The whole job, resolved.
+#[derive(Debug, Clone)]
+pub struct Plan {
+    /// The cluster YAML it came from.
+    pub config: ClusterConfig,
+    /// The model.
+    pub model: XFactorConfig,
+    /// Stage 1 then stage 2.
+    pub stages: [StagePlan; 2],
+    /// Train sequences of each stored dataset, for the shard summary.
+    manifests: Vec<(DatasetKind, DataRoot, Manifest)>,
+}
+
+impl Plan {
+    /// Indexes the datasets (reusing caches that match their listing) and resolves both stages.
+    pub async fn build(config: ClusterConfig) -> Result<Self, PlanError> {
+        let model = config.model_config().map_err(PlanError::Model)?;
+        let mut manifests = Vec::new();
+        let source = match &config.data {
+            DataConfig::Generated(generated) => DataSource::Generated {
+                scenes: generated.scenes.0,
+                trajectories: generated.trajectories.0,
+                frames: generated.frames.0 as usize,
+            },
+            DataConfig::Datasets(datasets) => {
+                let mut stored = Vec::new();
+                for (index, dataset) in datasets.iter().enumerate() {
+                    let failed = |reason: String| PlanError::Dataset {
+                        index,
+                        kind: dataset.kind.name(),
+                        uri: dataset.uri.0.clone(),
+                        reason,
+                    };
+                    let root = DataRoot::open(&dataset.uri.0).map_err(|e| failed(e.to_string()))?;
+                    let (cached, used) = load_or_index(&root, dataset.kind)
+                        .await
+                        .map_err(|e| failed(e.to_string()))?;
+                    tracing::info!(
+                        dataset = dataset.kind.name(),
+                        uri = %dataset.uri.0,
+                        sequences = cached.manifest.sequences.len(),
+                        cache = if used == CacheUse::Reused { "reused" } else { "rebuilt" },
+                        "indexed"
+                    );
+                    let mut train = cached.manifest.clone();
+                    train.sequences.retain(|s| s.split == Split::Train);
+                    manifests.push((dataset.kind, root, train));
+                    stored.push(StoredDataset {
+                        kind: dataset.kind,
+                        uri: dataset.uri.0.clone(),
+                        fingerprint: cached.fingerprint,
+                    });
+                }
+                DataSource::Stored(stored)
+            }
+        };
+        let stage = |number: u32,
+                     steps: u64,
+                     global_batch: u64,
+                     micro_batch: u64,
+                     objective: StageObjective,
+                     schedule,
+                     optimizer,
+                     lpips_weights: Option<String>| StagePlan {
+            stage: number,
+            steps,
+            train: TrainConfig {
+                seed: config.seed,
+                objective,
+                global_batch: global_batch as usize,
+                micro_batch: micro_batch as usize,
+                shards: config.workers.threads as usize,
+                schedule,
+                optimizer,
+            },
+            data: DataSpec {
+                source: source.clone(),
+                sampler: config.sampler(number),
+                image_size: model.image_size,
+                seed: config.seed,
+                global_batch: global_batch as usize,
+            },
+            lpips_weights,
+        };
+        let (s1, s2) = (&config.stage1, &config.stage2);
+        let stages = [
+            stage(
+                1,
+                s1.steps,
+                s1.global_batch,
+                s1.micro_batch,
+                StageObjective::Stage1(s1.objective.clone()),
+                s1.schedule.clone(),
+                s1.optimizer.clone(),
+                s1.lpips_weights.clone(),
+            ),
+            stage(
+                2,
+                s2.steps,
+                s2.global_batch,
+                s2.micro_batch,
+                StageObjective::Stage2(s2.objective.clone()),
+                s2.schedule.clone(),
+                s2.optimizer.clone(),
+                s2.lpips_weights.clone(),
+            ),
+        ];
+        Ok(Self {
+            config,
+            model,
+            stages,
+            manifests,
+        })
+    }
+
+    /// The stage numbered `stage` (1 or 2).
+    pub fn stage(&self, stage: u32) -> &StagePlan {
+        &self.stages[if stage <= 1 { 0 } else { 1 }]
+    }
+
+    /// Human-readable plan for `--dry-run`: ranks, shards of the first epoch, steps.
+    pub fn describe(&self) -> String {
+        let config = &self.config;
+        let world = config.workers.expected.0 as usize;
+        let mut out = String::new();
+        let _ = writeln!(out, "job: {}", config.job.0);
+        let _ = writeln!(out, "seed: {}", config.seed);
+        let _ = writeln!(out, "listen: {}", config.listen.0);
+        let _ = writeln!(
+            out,
+            "model: {:?} image_size={} width={} heads={} pose_layers={} render_layers={}",
+            config.model.preset,
+            self.model.image_size,
+            self.model.width,
+            self.model.num_heads,
+            self.model.pose_layers,
+            self.model.render_layers
+        );
+        let _ = writeln!(
+            out,
+            "workers: expected={} minimum={} device={:?}",
+            world, config.workers.minimum.0, config.workers.device
+        );
+        for stage in &self.stages {
+            let _ = writeln!(
+                out,
+                "stage{}: steps={} global_batch={} micro_batch={} lr {}→{}→{} warmup={} lpips_weight={} frames_per_sample={}",
+                stage.stage,
+                stage.steps,
+                stage.train.global_batch,
+                stage.train.micro_batch,
+                stage.train.schedule.initial_lr,
+                stage.train.schedule.peak_lr,
+                stage.train.schedule.final_lr,
+                stage.train.schedule.warmup_steps,
+                match &stage.train.objective {
+                    StageObjective::Stage1(o) => o.lpips_weight,
+                    StageObjective::Stage2(o) => o.lpips_weight,
+                },
+                stage.data.sampler.frames,
+            );
+            for rank in 0..world {
+                let (first, count) = rank_slice(stage.train.global_batch, world, rank);
+                let _ = writeln!(
+                    out,
+                    "  rank {rank}: samples {first}..{} of each step ({} micro-batches)",
+                    first + count as u64,
+                    count.div_ceil(stage.train.micro_batch.max(1))
+                );
+            }
+        }
+        match &self.stages[0].data.source {
+            DataSource::Generated {
+                scenes,
+                trajectories,
+                frames,
+            } => {
+                let _ = writeln!(
+                    out,
+                    "data: generated, {scenes} scenes x {trajectories} trajectories x {frames} frames, drawn by global sample index (not sharded)"
+                );
+            }
+            DataSource::Stored(datasets) => {
+                for (dataset, (_, _, manifest)) in datasets.iter().zip(&self.manifests) {
+                    let _ = writeln!(
+                        out,
+                        "data: {} at {}: {} train sequences, {} frames",
+                        dataset.kind.name(),
+                        dataset.uri,
+                        manifest.sequences.len(),
+                        manifest.frame_counts().iter().sum::<usize>()
+                    );
+                }
+                let sequences: usize = self.manifests.iter().map(|(_, _, m)| m.sequences.len()).sum();
+                let epoch_steps = steps_per_epoch(sequences, self.stages[0].train.global_batch);
+                let _ = writeln!(out, "epoch: {epoch_steps} steps; shards of epoch 0:");
+                for rank in 0..world {
+                    let ids = shard_ids(&self.manifests, world, rank, config.seed, 0);
+                    let preview: Vec<&str> = ids.iter().take(4).map(String::as_str).collect();
+                    let _ = writeln!(
+                        out,
+                        "  rank {rank}: {} sequences ({}{})",
+                        ids.len(),
+                        preview.join(", "),
+                        if ids.len() > 4 { ", ..." } else { "" }
+                    );
+                }
+            }
+        }
+        let _ = writeln!(
+            out,
+            "checkpoints: {} every {} steps",
+            config.checkpoint.uri.0, config.checkpoint.every.0
+        );
+        out
+    }
+}

@@ -1,0 +1,251 @@
+//! The coordinator and worker binaries as real processes on loopback: both stages, checksums,
+//! data-parallel equivalence, and lost workers.
+
+use std::path::{Path, PathBuf};
+use std::process::Child;
+use std::time::{Duration, Instant};
+
+use coordinator::local::{LocalJob, free_port};
+use serde_json::Value;
+use trainer_core::flax::FlaxTensors;
+
+fn binaries() -> PathBuf {
+    let coordinator = PathBuf::from(env!("CARGO_BIN_EXE_xfactor-coordinator"));
+    let folder = coordinator.parent().expect("binary folder").to_path_buf();
+    assert!(
+        folder.join("xfactor-worker").exists(),
+        "xfactor-worker must be built next to xfactor-coordinator (cargo test --workspace builds both)"
+    );
+    folder
+}
+
+struct Running {
+    job: LocalJob,
+    coordinator: Child,
+    workers: Vec<Child>,
+}
+
+impl Running {
+    fn start(job: LocalJob) -> Self {
+        let runtime = tokio::runtime::Runtime::new().unwrap();
+        runtime.block_on(job.prepare()).unwrap();
+        let binaries = binaries();
+        let coordinator = job.spawn_coordinator(&binaries).unwrap();
+        let workers = (0..job.workers)
+            .map(|i| job.spawn_worker(&binaries, i).unwrap())
+            .collect();
+        Self {
+            job,
+            coordinator,
+            workers,
+        }
+    }
+
+    fn logs(&self) -> String {
+        let mut text = String::new();
+        for entry in std::fs::read_dir(&self.job.dir).unwrap().flatten() {
+            let path = entry.path();
+            if path.extension().is_some_and(|e| e == "log") {
+                let log = std::fs::read_to_string(&path).unwrap_or_default();
+                let tail: Vec<&str> = log.lines().rev().take(25).collect();
+                text.push_str(&format!("== {}\n", path.display()));
+                for line in tail.into_iter().rev() {
+                    text.push_str(line);
+                    text.push('\n');
+                }
+            }
+        }
+        text
+    }
+
+    /// Waits for the coordinator to end and returns the report.
+    fn finish(mut self, limit: Duration) -> Value {
+        let deadline = Instant::now() + limit;
+        loop {
+            if let Some(status) = self.coordinator.try_wait().unwrap() {
+                assert!(status.success(), "coordinator failed: {status}\n{}", self.logs());
+                break;
+            }
+            if Instant::now() > deadline {
+                let _ = self.coordinator.kill();
+                panic!("the job did not finish in {limit:?}\n{}", self.logs());
+            }
+            std::thread::sleep(Duration::from_millis(100));
+        }
+        for worker in &mut self.workers {
+            let deadline = Instant::now() + Duration::from_secs(20);
+            while worker.try_wait().unwrap().is_none() && Instant::now() < deadline {
+                std::thread::sleep(Duration::from_millis(100));
+            }
+            let _ = worker.kill();
+        }
+        serde_json::from_slice(&std::fs::read(self.job.report_path()).unwrap()).unwrap()
+    }
+}
+
+impl Drop for Running {
+    fn drop(&mut self) {
+        let _ = self.coordinator.kill();
+        for worker in &mut self.workers {
+            let _ = worker.kill();
+        }
+    }
+}
+
+fn small_job(dir: &Path, workers: usize) -> LocalJob {
+    let mut job = LocalJob::new(dir, free_port().unwrap());
+    job.workers = workers;
+    job.scenes = 3;
+    job.trajectories = 3;
+    job.frames = 10;
+    job.stage1_steps = 4;
+    job.stage2_steps = 3;
+    job.checkpoint_every = 2;
+    job
+}
+
+fn commits(report: &Value, stage: u64) -> Vec<(u64, String)> {
+    report["commits"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|c| c["stage"] == stage)
+        .map(|c| {
+            (
+                c["step"].as_u64().unwrap(),
+                c["location"].as_str().unwrap().to_string(),
+            )
+        })
+        .collect()
+}
+
+fn load_weights(location: &str) -> FlaxTensors {
+    let weights = Path::new(location).join("model.safetensors");
+    trainer_core::checkpoint::load(&weights, &burn::tensor::Device::flex())
+        .unwrap_or_else(|e| panic!("checkpoint {location} does not load: {e}"));
+    FlaxTensors::read(&weights).unwrap()
+}
+
+#[test]
+fn two_workers_run_both_stages_in_lockstep() {
+    let dir = tempfile::tempdir().unwrap();
+    let report = Running::start(small_job(dir.path(), 2)).finish(Duration::from_secs(300));
+    assert_eq!(report["outcome"], "finished");
+    assert_eq!(report["checksum_mismatches"].as_array().unwrap().len(), 0);
+    let steps = report["steps"].as_array().unwrap();
+    assert_eq!(steps.len(), 4 + 3, "{report:#}");
+    for record in steps {
+        let checksums: Vec<&Value> = record["checksums"].as_object().unwrap().values().collect();
+        assert_eq!(checksums.len(), 2, "both ranks report every step: {record}");
+        assert_eq!(checksums[0], checksums[1], "ranks differ: {record}");
+        assert!(record["loss"].as_f64().unwrap().is_finite());
+    }
+    let stage1 = commits(&report, 1);
+    let stage2 = commits(&report, 2);
+    assert_eq!(stage1.iter().map(|c| c.0).collect::<Vec<_>>(), [2, 4]);
+    assert_eq!(stage2.iter().map(|c| c.0).collect::<Vec<_>>(), [2, 3]);
+    let stage1_final = report["stage1_final"].as_str().unwrap();
+    assert_eq!(stage1_final, stage1[1].1);
+    let stage2_start = report["generations"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|g| g["stage"] == 2)
+        .unwrap();
+    assert_eq!(stage2_start["init_weights_from"], stage1_final);
+    let first = load_weights(stage1_final);
+    let last = load_weights(&stage2[1].1);
+    let name = first.names_with_prefix("").next().unwrap().to_string();
+    assert_ne!(
+        first.get(&name).unwrap().values,
+        last.get(&name).unwrap().values,
+        "stage 2 trained on"
+    );
+}
+
+#[test]
+fn two_workers_of_four_equal_one_worker_of_eight() {
+    let run = |workers: usize, micro: u64| {
+        let dir = tempfile::tempdir().unwrap();
+        let mut job = small_job(dir.path(), workers);
+        job.in_memory = true;
+        job.micro_batch = micro;
+        job.stage1_steps = 2;
+        job.stage2_steps = 1;
+        let report = Running::start(job).finish(Duration::from_secs(300));
+        let final_location = commits(&report, 2).last().unwrap().1.clone();
+        (report, load_weights(&final_location), dir)
+    };
+    let (two, two_weights, _a) = run(2, 4);
+    let (one, one_weights, _b) = run(1, 8);
+    let losses = |report: &Value| -> Vec<f64> {
+        report["steps"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|s| s["loss"].as_f64().unwrap())
+            .collect()
+    };
+    for (a, b) in losses(&two).iter().zip(losses(&one)) {
+        assert!((a - b).abs() <= 1e-5 * b.abs().max(1.0), "loss {a} vs {b}");
+    }
+    let mut worst = 0.0f32;
+    for name in one_weights.names_with_prefix("") {
+        let (a, b) = (two_weights.get(name).unwrap(), one_weights.get(name).unwrap());
+        for (x, y) in a.values.iter().zip(&b.values) {
+            worst = worst.max((x - y).abs());
+        }
+    }
+    assert!(worst < 1e-5, "weights differ by up to {worst}");
+}
+
+fn kill_one_mid_stage(workers: usize, minimum: usize) {
+    let dir = tempfile::tempdir().unwrap();
+    let mut job = small_job(dir.path(), workers);
+    job.minimum = minimum;
+    job.global_batch = 12;
+    job.micro_batch = 2;
+    job.stage1_steps = 10;
+    job.stage2_steps = 3;
+    let marker = job.checkpoint_dir().join("job.json");
+    let mut running = Running::start(job);
+    let deadline = Instant::now() + Duration::from_secs(240);
+    while !marker.exists() {
+        assert!(Instant::now() < deadline, "no commit\n{}", running.logs());
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    running.workers[1].kill().unwrap();
+    let report = running.finish(Duration::from_secs(300));
+    assert_eq!(report["outcome"], "finished", "{report:#}");
+    assert!(report["restarts"].as_u64().unwrap() >= 1, "{report:#}");
+    let generations = report["generations"].as_array().unwrap();
+    let after = generations
+        .iter()
+        .find(|g| g["world_size"] == (workers - 1) as u64)
+        .unwrap_or_else(|| panic!("no smaller group: {report:#}"));
+    if after["stage"] == 1 {
+        assert_ne!(after["resume_from"], "", "resumed from the last commit");
+    }
+    for stage in [1, 2] {
+        let stage_commits = commits(&report, stage);
+        let steps: Vec<u64> = stage_commits.iter().map(|c| c.0).collect();
+        assert!(steps.windows(2).all(|w| w[0] <= w[1]), "{steps:?}");
+        let last = stage_commits.last().unwrap();
+        assert_eq!(last.0, if stage == 1 { 10 } else { 3 });
+        load_weights(&last.1);
+    }
+    for record in report["steps"].as_array().unwrap() {
+        let checksums: Vec<&Value> = record["checksums"].as_object().unwrap().values().collect();
+        assert!(checksums.windows(2).all(|w| w[0] == w[1]), "{record}");
+    }
+}
+
+#[test]
+fn a_killed_worker_of_two_does_not_stop_the_job() {
+    kill_one_mid_stage(2, 1);
+}
+
+#[test]
+fn a_killed_worker_of_three_does_not_stop_the_job() {
+    kill_one_mid_stage(3, 2);
+}

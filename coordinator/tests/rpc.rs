@@ -1,0 +1,97 @@
+//! The coordinator's refusals, through a real gRPC connection: wrong or missing token, another
+//! protocol version, another model config.
+
+use std::time::Duration;
+
+use coordinator::config::ClusterConfig;
+use coordinator::local::free_port;
+use coordinator::plan::Plan;
+use coordinator::service::{CoordinatorService, MODEL_CONFIG_VERSION};
+use proto::v1::coordinator_client::CoordinatorClient;
+use proto::v1::{RegisterRequest, StatusRequest};
+use tokio::sync::oneshot;
+
+fn yaml(port: u16, checkpoints: &str) -> String {
+    format!(
+        "job: rpc-test
+listen: 127.0.0.1:{port}
+auth:
+  token: right-token
+model:
+  preset: tiny
+data:
+  generated: {{scenes: 1, trajectories: 1, frames: 6}}
+stage1: {{steps: 1, global_batch: 2, micro_batch: 1, lpips_weight: 0}}
+stage2: {{steps: 1, global_batch: 2, micro_batch: 1, lpips_weight: 0}}
+checkpoint: {{uri: {checkpoints}, every: 1}}
+"
+    )
+}
+
+fn request(protocol: u32, model: &str) -> RegisterRequest {
+    RegisterRequest {
+        protocol_version: protocol,
+        model_config_version: MODEL_CONFIG_VERSION,
+        worker_name: "test".into(),
+        collective_address: "127.0.0.1:1".into(),
+        device: "cpu".into(),
+        expected_model_config_json: model.into(),
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn refusals_name_their_reason() {
+    let dir = tempfile::tempdir().unwrap();
+    let port = free_port().unwrap();
+    let config = ClusterConfig::from_yaml(&yaml(port, &dir.path().display().to_string()), "test.yaml").unwrap();
+    let model = serde_json::to_value(config.model_config().unwrap()).unwrap();
+    let plan = Plan::build(config).await.unwrap();
+    let service = CoordinatorService::new(plan).await.unwrap();
+    let (stop, stopped) = oneshot::channel::<()>();
+    let server = tokio::spawn(service.run("right-token", async {
+        let _ = stopped.await;
+    }));
+    let address = format!("http://127.0.0.1:{port}");
+    let channel = loop {
+        match tonic::transport::Endpoint::from_shared(address.clone()).unwrap().connect().await {
+            Ok(channel) => break channel,
+            Err(_) => tokio::time::sleep(Duration::from_millis(50)).await,
+        }
+    };
+
+    let mut anonymous = CoordinatorClient::new(channel.clone());
+    let missing = anonymous.status(StatusRequest {}).await.unwrap_err();
+    assert_eq!(missing.code(), tonic::Code::Unauthenticated);
+    assert!(missing.message().contains("missing job token"), "{missing:?}");
+
+    let mut wrong = CoordinatorClient::with_interceptor(
+        channel.clone(),
+        proto::AttachToken::new("guessed").unwrap(),
+    );
+    let refused = wrong.register(request(proto::PROTOCOL_VERSION, "")).await.unwrap_err();
+    assert_eq!(refused.code(), tonic::Code::Unauthenticated);
+    assert!(refused.message().contains("wrong job token"));
+
+    let mut client = CoordinatorClient::with_interceptor(
+        channel,
+        proto::AttachToken::new("right-token").unwrap(),
+    );
+    let protocol = client.register(request(proto::PROTOCOL_VERSION + 1, "")).await.unwrap_err();
+    assert_eq!(protocol.code(), tonic::Code::FailedPrecondition);
+    assert!(protocol.message().contains(&format!("protocol version {}", proto::PROTOCOL_VERSION + 1)), "{protocol:?}");
+
+    let mut other = model.clone();
+    other["width"] = serde_json::json!(64);
+    let differs = client.register(request(proto::PROTOCOL_VERSION, &other.to_string())).await.unwrap_err();
+    assert_eq!(differs.code(), tonic::Code::FailedPrecondition);
+    assert!(differs.message().contains("width: job 32 vs worker 64"), "{differs:?}");
+
+    let accepted = client.register(request(proto::PROTOCOL_VERSION, &model.to_string())).await.unwrap();
+    assert!(accepted.into_inner().worker_id > 0);
+    let status = client.status(StatusRequest {}).await.unwrap().into_inner();
+    assert_eq!(status.job_name, "rpc-test");
+    assert_eq!(status.workers, 1);
+
+    stop.send(()).unwrap();
+    server.await.unwrap().unwrap();
+}

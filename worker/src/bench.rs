@@ -1,0 +1,73 @@
+//! One rank of the all-reduce benchmark: joins a fixed ring on loopback and times all-reduces
+//! of several sizes. `benches/allreduce.rs` starts the processes and prints the figures.
+
+use std::time::Duration;
+
+use anyhow::Context;
+use tokio::sync::watch;
+use trainer_core::cli::Flags;
+
+use crate::collective::{CollectiveService, Ring, spawn_server};
+
+/// Token of the benchmark's private ring.
+const BENCH_TOKEN: &str = "allreduce-bench";
+
+/// Runs rank `--rank` of the ring `--peers`; rank 0 prints `size_mb=.. seconds=..` per size
+/// (the median of `--repeats` runs after one warm-up).
+pub fn run_rank(flags: &Flags) -> anyhow::Result<()> {
+    let rank: usize = flags.require("rank").map_err(anyhow::Error::msg)?.parse()?;
+    let peers: Vec<String> = flags
+        .require("peers")
+        .map_err(anyhow::Error::msg)?
+        .split(',')
+        .map(str::to_string)
+        .collect();
+    let sizes: Vec<f64> = flags
+        .get("sizes-mb")
+        .unwrap_or("1,16,64,100")
+        .split(',')
+        .map(|s| s.parse::<f64>().with_context(|| format!("size `{s}`")))
+        .collect::<Result<_, _>>()?;
+    let repeats: usize = flags.get("repeats").unwrap_or("5").parse()?;
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()?;
+    runtime.block_on(async {
+        let service = CollectiveService::default();
+        let mailbox = service.mailbox();
+        let listener = tokio::net::TcpListener::bind(&peers[rank]).await?;
+        spawn_server(listener, service, BENCH_TOKEN);
+        let (_cancel, cancelled) = watch::channel(false);
+        let mut ring = Ring::connect(
+            &mailbox,
+            rank,
+            &peers,
+            1,
+            BENCH_TOKEN,
+            cancelled,
+            Duration::from_secs(60),
+        )
+        .await?;
+        for size in sizes {
+            let values = ((size * 1e6) / 4.0) as usize;
+            let mut buffer: Vec<f32> = (0..values).map(|i| (i % 1000) as f32 + rank as f32).collect();
+            let mut times = Vec::new();
+            for run in 0..=repeats {
+                let stats = ring.all_reduce(&mut buffer).await?;
+                if run > 0 {
+                    times.push(stats.seconds);
+                }
+            }
+            times.sort_by(f64::total_cmp);
+            let median = times[times.len() / 2];
+            if rank == 0 {
+                println!("size_mb={size} seconds={median:.6}");
+            }
+        }
+        anyhow::Ok(())
+    })?;
+    // Let the peer finish reading before the streams close.
+    std::thread::sleep(Duration::from_millis(300));
+    Ok(())
+}

@@ -1,0 +1,410 @@
+//! The ring all-reduce between workers over gRPC streams.
+//!
+//! Each rank streams chunks to its right neighbour (one client stream per generation) and
+//! receives its left neighbour's chunks through its own Collective service. The buffer is cut
+//! into one segment per rank; `n - 1` reduce-scatter steps followed by `n - 1` all-gather steps
+//! move `2 (n - 1) / n` of the buffer per rank, which is bandwidth-optimal. Segments travel as
+//! chunks, and a chunk is forwarded as soon as it has been reduced, so the steps overlap
+//! (pipelining) instead of waiting for whole segments.
+
+use std::collections::HashMap;
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
+
+use bytes::Bytes;
+use proto::v1::collective_client::CollectiveClient;
+use proto::v1::collective_server::Collective;
+use proto::v1::{Chunk, PushAck};
+use tokio::sync::{mpsc, watch};
+use tokio_stream::wrappers::UnboundedReceiverStream;
+use tonic::{Request, Response, Status, Streaming};
+
+/// Values per chunk (1 MiB of `f32`): big enough to amortise per-message costs, small enough to
+/// pipeline.
+pub const CHUNK_VALUES: usize = 256 * 1024;
+
+/// What went wrong in a collective. The caller's buffer may be partly reduced and must be
+/// discarded; the model was not touched.
+#[derive(Debug, Clone, thiserror::Error)]
+pub enum CollectiveError {
+    /// The right neighbour could not be reached.
+    #[error("cannot reach rank {rank} at {address}: {reason}")]
+    Connect {
+        /// Its rank.
+        rank: usize,
+        /// Its address.
+        address: String,
+        /// Why.
+        reason: String,
+    },
+    /// The right neighbour's stream closed (it died or left).
+    #[error("stream to rank {rank} closed: the peer is gone")]
+    PeerGone {
+        /// Its rank.
+        rank: usize,
+    },
+    /// The left neighbour's stream failed or ended early.
+    #[error("stream from rank {rank} broke: {reason}")]
+    InboundBroken {
+        /// Its rank.
+        rank: usize,
+        /// Why.
+        reason: String,
+    },
+    /// A chunk did not match what the ring expected.
+    #[error("rank {sender} sent a bad chunk: {detail}")]
+    BadChunk {
+        /// The sender.
+        sender: u32,
+        /// What was wrong.
+        detail: String,
+    },
+    /// Nothing arrived for too long.
+    #[error("no chunk from rank {rank} for {seconds:.0} s")]
+    Timeout {
+        /// The silent rank.
+        rank: usize,
+        /// How long we waited.
+        seconds: f64,
+    },
+    /// The coordinator abandoned the generation.
+    #[error("generation abandoned by the coordinator")]
+    Cancelled,
+}
+
+type Inbound = Result<Chunk, String>;
+
+/// Inboxes of incoming chunks, one per generation, created by whichever side comes first (a
+/// left neighbour may start streaming before this rank has set up its ring).
+#[derive(Default)]
+pub struct Mailbox {
+    inboxes: Mutex<HashMap<u64, Inbox>>,
+}
+
+struct Inbox {
+    sender: mpsc::UnboundedSender<Inbound>,
+    receiver: Option<mpsc::UnboundedReceiver<Inbound>>,
+}
+
+impl Mailbox {
+    fn sender(&self, generation: u64) -> mpsc::UnboundedSender<Inbound> {
+        let mut inboxes = self.inboxes.lock().unwrap_or_else(|p| p.into_inner());
+        inboxes
+            .entry(generation)
+            .or_insert_with(|| {
+                let (sender, receiver) = mpsc::unbounded_channel();
+                Inbox {
+                    sender,
+                    receiver: Some(receiver),
+                }
+            })
+            .sender
+            .clone()
+    }
+
+    /// Takes the receiving end of `generation`'s inbox, dropping older generations' inboxes.
+    fn take(&self, generation: u64) -> Option<mpsc::UnboundedReceiver<Inbound>> {
+        self.sender(generation);
+        let mut inboxes = self.inboxes.lock().unwrap_or_else(|p| p.into_inner());
+        inboxes.retain(|&g, _| g >= generation);
+        inboxes.get_mut(&generation).and_then(|i| i.receiver.take())
+    }
+}
+
+/// The Collective service: files incoming chunks into the mailbox.
+#[derive(Clone, Default)]
+pub struct CollectiveService {
+    mailbox: Arc<Mailbox>,
+}
+
+impl CollectiveService {
+    /// The mailbox rings read from.
+    pub fn mailbox(&self) -> Arc<Mailbox> {
+        self.mailbox.clone()
+    }
+}
+
+#[tonic::async_trait]
+impl Collective for CollectiveService {
+    async fn push(&self, request: Request<Streaming<Chunk>>) -> Result<Response<PushAck>, Status> {
+        let mut stream = request.into_inner();
+        let mut chunks = 0u64;
+        let mut generation = None;
+        loop {
+            match stream.message().await {
+                Ok(Some(chunk)) => {
+                    let sender = self.mailbox.sender(chunk.generation);
+                    generation = Some(chunk.generation);
+                    chunks += 1;
+                    if sender.send(Ok(chunk)).is_err() {
+                        return Err(Status::cancelled("this rank left the generation"));
+                    }
+                }
+                Ok(None) => return Ok(Response::new(PushAck { chunks })),
+                Err(status) => {
+                    if let Some(generation) = generation {
+                        let _ = self
+                            .mailbox
+                            .sender(generation)
+                            .send(Err(status.message().to_string()));
+                    }
+                    return Err(status);
+                }
+            }
+        }
+    }
+}
+
+/// Serves `service` on `listener` behind the job-token check, with flow-control windows sized
+/// for megabyte chunks. Runs until the process ends.
+pub fn spawn_server(listener: tokio::net::TcpListener, service: CollectiveService, token: &str) {
+    let server = tonic::service::interceptor::InterceptedService::new(
+        proto::v1::collective_server::CollectiveServer::new(service)
+            .max_decoding_message_size(proto::MAX_MESSAGE_BYTES),
+        proto::RequireToken::new(token),
+    );
+    tokio::spawn(
+        tonic::transport::Server::builder()
+            .initial_stream_window_size(Some(16 * 1024 * 1024))
+            .initial_connection_window_size(Some(32 * 1024 * 1024))
+            .tcp_nodelay(true)
+            .add_service(server)
+            .serve_with_incoming(tokio_stream::wrappers::TcpListenerStream::new(listener)),
+    );
+}
+
+/// Figures of one all-reduce.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct ReduceStats {
+    /// Wall time.
+    pub seconds: f64,
+    /// Bytes this rank sent.
+    pub bytes_sent: u64,
+}
+
+/// One rank's place in the ring of a generation.
+pub struct Ring {
+    rank: usize,
+    world: usize,
+    generation: u64,
+    operation: u64,
+    outbound: Option<mpsc::UnboundedSender<Chunk>>,
+    inbox: Option<mpsc::UnboundedReceiver<Inbound>>,
+    cancel: watch::Receiver<bool>,
+    timeout: Duration,
+    chunk_values: usize,
+}
+
+impl Ring {
+    /// Joins the ring of `generation`: opens the stream to the right neighbour and takes this
+    /// rank's inbox. `cancel` turning true aborts any all-reduce in progress.
+    pub async fn connect(
+        mailbox: &Mailbox,
+        rank: usize,
+        peers: &[String],
+        generation: u64,
+        token: &str,
+        cancel: watch::Receiver<bool>,
+        timeout: Duration,
+    ) -> Result<Self, CollectiveError> {
+        let world = peers.len().max(1);
+        let mut ring = Self {
+            rank,
+            world,
+            generation,
+            operation: 0,
+            outbound: None,
+            inbox: None,
+            cancel,
+            timeout,
+            chunk_values: CHUNK_VALUES,
+        };
+        if world == 1 {
+            return Ok(ring);
+        }
+        let right = (rank + 1) % world;
+        let address = &peers[right];
+        let failed = |reason: String| CollectiveError::Connect {
+            rank: right,
+            address: address.clone(),
+            reason,
+        };
+        let endpoint = tonic::transport::Endpoint::from_shared(format!("http://{address}"))
+            .map_err(|e| failed(e.to_string()))?
+            .tcp_nodelay(true)
+            .initial_stream_window_size(Some(16 * 1024 * 1024))
+            .initial_connection_window_size(Some(32 * 1024 * 1024))
+            .connect_timeout(Duration::from_secs(2));
+        let deadline = Instant::now() + timeout;
+        let channel = loop {
+            match endpoint.connect().await {
+                Ok(channel) => break channel,
+                Err(e) if Instant::now() >= deadline => return Err(failed(e.to_string())),
+                Err(_) => tokio::time::sleep(Duration::from_millis(100)).await,
+            }
+        };
+        let attach = proto::AttachToken::new(token).map_err(|e| failed(e.to_string()))?;
+        let mut client = CollectiveClient::with_interceptor(channel, attach)
+            .max_encoding_message_size(proto::MAX_MESSAGE_BYTES);
+        let (sender, receiver) = mpsc::unbounded_channel();
+        tokio::spawn(async move {
+            if let Err(status) = client.push(UnboundedReceiverStream::new(receiver)).await {
+                tracing::warn!(peer = right, error = %status.message(), "collective stream ended");
+            }
+        });
+        ring.outbound = Some(sender);
+        ring.inbox = mailbox.take(generation);
+        Ok(ring)
+    }
+
+    /// Ranks in the ring.
+    pub fn world_size(&self) -> usize {
+        self.world
+    }
+
+    /// Changes the chunk size (tests use small chunks to exercise the pipeline).
+    pub fn set_chunk_values(&mut self, values: usize) {
+        self.chunk_values = values.max(1);
+    }
+
+    fn segment(&self, len: usize, index: usize) -> (usize, usize) {
+        (index * len / self.world, (index + 1) * len / self.world)
+    }
+
+    fn chunks(&self, begin: usize, end: usize) -> impl Iterator<Item = (usize, usize)> + use<> {
+        let step = self.chunk_values;
+        (begin..end)
+            .step_by(step)
+            .map(move |start| (start, (start + step).min(end)))
+    }
+
+    fn send(&self, ring_step: u32, segment: usize, begin: usize, values: &[f32]) -> Result<(), CollectiveError> {
+        let mut bytes = Vec::with_capacity(values.len() * 4);
+        for value in values {
+            bytes.extend_from_slice(&value.to_le_bytes());
+        }
+        let chunk = Chunk {
+            generation: self.generation,
+            operation: self.operation,
+            ring_step,
+            segment: segment as u32,
+            offset: begin as u64,
+            values: Bytes::from(bytes),
+            sender: self.rank as u32,
+        };
+        let outbound = self.outbound.as_ref().ok_or(CollectiveError::PeerGone {
+            rank: (self.rank + 1) % self.world,
+        })?;
+        outbound.send(chunk).map_err(|_| CollectiveError::PeerGone {
+            rank: (self.rank + 1) % self.world,
+        })
+    }
+
+    async fn receive(&mut self) -> Result<Chunk, CollectiveError> {
+        let left = (self.rank + self.world - 1) % self.world;
+        let timeout = self.timeout;
+        let inbox = self.inbox.as_mut().ok_or(CollectiveError::InboundBroken {
+            rank: left,
+            reason: "no inbox".into(),
+        })?;
+        let cancel = &mut self.cancel;
+        if *cancel.borrow() {
+            return Err(CollectiveError::Cancelled);
+        }
+        tokio::select! {
+            message = inbox.recv() => match message {
+                Some(Ok(chunk)) => Ok(chunk),
+                Some(Err(reason)) => Err(CollectiveError::InboundBroken { rank: left, reason }),
+                None => Err(CollectiveError::InboundBroken { rank: left, reason: "stream closed".into() }),
+            },
+            _ = cancel.wait_for(|cancelled| *cancelled) => Err(CollectiveError::Cancelled),
+            () = tokio::time::sleep(timeout) => Err(CollectiveError::Timeout { rank: left, seconds: timeout.as_secs_f64() }),
+        }
+    }
+
+    /// Sums `values` element-wise across all ranks, in place; every rank ends with the same sum.
+    pub async fn all_reduce(&mut self, values: &mut [f32]) -> Result<ReduceStats, CollectiveError> {
+        let start = Instant::now();
+        let (n, r) = (self.world, self.rank);
+        if n == 1 {
+            return Ok(ReduceStats::default());
+        }
+        let len = values.len();
+        let mut bytes_sent = 0u64;
+        let (begin, end) = self.segment(len, r);
+        for (a, b) in self.chunks(begin, end) {
+            self.send(0, r, a, &values[a..b])?;
+            bytes_sent += ((b - a) * 4) as u64;
+        }
+        let steps = 2 * (n - 1);
+        for step in 0..steps {
+            let segment = if step < n - 1 {
+                (r + n - step - 1) % n
+            } else {
+                (r + n - (step - (n - 1))) % n
+            };
+            let (begin, end) = self.segment(len, segment);
+            let pieces: Vec<(usize, usize)> = self.chunks(begin, end).collect();
+            for (a, b) in pieces {
+                let chunk = self.receive().await?;
+                self.check(&chunk, step as u32, segment, a, b)?;
+                let target = &mut values[a..b];
+                if step < n - 1 {
+                    for (value, raw) in target.iter_mut().zip(chunk.values.chunks_exact(4)) {
+                        *value += f32::from_le_bytes([raw[0], raw[1], raw[2], raw[3]]);
+                    }
+                } else {
+                    for (value, raw) in target.iter_mut().zip(chunk.values.chunks_exact(4)) {
+                        *value = f32::from_le_bytes([raw[0], raw[1], raw[2], raw[3]]);
+                    }
+                }
+                if step + 1 < steps {
+                    self.send(step as u32 + 1, segment, a, &values[a..b])?;
+                    bytes_sent += ((b - a) * 4) as u64;
+                }
+            }
+        }
+        self.operation += 1;
+        Ok(ReduceStats {
+            seconds: start.elapsed().as_secs_f64(),
+            bytes_sent,
+        })
+    }
+
+    fn check(
+        &self,
+        chunk: &Chunk,
+        step: u32,
+        segment: usize,
+        begin: usize,
+        end: usize,
+    ) -> Result<(), CollectiveError> {
+        let bad = |detail: String| {
+            Err(CollectiveError::BadChunk {
+                sender: chunk.sender,
+                detail,
+            })
+        };
+        let expected_bytes = (end - begin) * 4;
+        if chunk.generation != self.generation || chunk.operation != self.operation {
+            return bad(format!(
+                "generation {} operation {}, expected generation {} operation {}",
+                chunk.generation, chunk.operation, self.generation, self.operation
+            ));
+        }
+        if chunk.ring_step != step || chunk.segment as usize != segment || chunk.offset as usize != begin {
+            return bad(format!(
+                "ring step {} segment {} offset {}, expected ring step {step} segment {segment} offset {begin}",
+                chunk.ring_step, chunk.segment, chunk.offset
+            ));
+        }
+        if chunk.values.len() != expected_bytes {
+            return bad(format!(
+                "{} bytes for segment {segment} at offset {begin}, expected {expected_bytes} ({} values)",
+                chunk.values.len(),
+                end - begin
+            ));
+        }
+        Ok(())
+    }
+}

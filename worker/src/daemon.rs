@@ -1,0 +1,420 @@
+//! The worker's life: register, await an assignment, train the assigned stage as one rank of
+//! the group, and go back for the next assignment, until the coordinator says the job is done.
+
+use std::net::SocketAddr;
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::time::{Duration, Instant};
+
+use anyhow::{Context, anyhow, bail};
+use proto::v1::assignment::Action;
+use proto::v1::coordinator_client::CoordinatorClient;
+use proto::v1::{
+    Assignment, AwaitAssignmentRequest, CheckpointCommit, HeartbeatRequest, LossTerms,
+    RegisterRequest, StepReport,
+};
+use tokio::runtime::Runtime;
+use tokio::sync::watch;
+use tonic::service::interceptor::InterceptedService;
+use tonic::transport::Channel;
+use trainer_core::backend::BackendChoice;
+use trainer_core::data::spec::{DataSpec, RankSource, rank_slice};
+use trainer_core::flat::{flatten_gradients, parameter_checksum, unflatten_gradients};
+use trainer_core::lpips::Lpips;
+use trainer_core::trainer::{TrainConfig, Trainer};
+use trainer_core::{XFactor, XFactorConfig};
+
+use crate::checkpoints;
+use crate::collective::{CollectiveService, Ring, spawn_server};
+
+/// Version of the model-config schema this build understands (must equal the coordinator's).
+pub const MODEL_CONFIG_VERSION: u32 = 1;
+
+/// Consecutive generations that may fail before the worker gives up.
+const MAX_CONSECUTIVE_FAILURES: u32 = 8;
+
+type Client = CoordinatorClient<InterceptedService<Channel, proto::AttachToken>>;
+
+/// How a worker is started.
+#[derive(Debug, Clone)]
+pub struct WorkerOptions {
+    /// Coordinator URL, `http://host:port`.
+    pub coordinator: String,
+    /// The job token.
+    pub token: String,
+    /// Where the Collective service binds (`127.0.0.1:0` picks a free port).
+    pub listen: String,
+    /// Address peers should use, when it differs from the bound one (NAT, `0.0.0.0`).
+    pub advertise: Option<String>,
+    /// `cpu`, `wgpu` or `auto`; `None` follows the job.
+    pub device: Option<String>,
+    /// Threads per micro-batch; `None` follows the job (0 there: every core).
+    pub threads: Option<usize>,
+    /// Name in logs.
+    pub name: String,
+    /// When set: the model config (JSON) this worker insists on.
+    pub expected_model_config: Option<String>,
+    /// Longest wait for a peer's chunk.
+    pub collective_timeout: Duration,
+    /// Scratch space for checkpoints on their way to and from the store.
+    pub scratch: PathBuf,
+}
+
+/// Shared between the training thread and the heartbeat task.
+struct Progress {
+    worker: AtomicU64,
+    generation: AtomicU64,
+    step: AtomicU64,
+    cancel: watch::Sender<bool>,
+}
+
+/// Runs the worker until the job finishes. Blocking; owns its async runtime.
+pub fn run(options: WorkerOptions) -> anyhow::Result<()> {
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()?;
+    let collective = CollectiveService::default();
+    let mailbox = collective.mailbox();
+    let address = runtime.block_on(serve_collective(&options, collective))?;
+    let mut client = runtime.block_on(connect(&options.coordinator, &options.token))?;
+    let (cancel, _) = watch::channel(false);
+    let progress = Arc::new(Progress {
+        worker: AtomicU64::new(0),
+        generation: AtomicU64::new(0),
+        step: AtomicU64::new(0),
+        cancel,
+    });
+    let interval = runtime.block_on(register(&mut client, &options, &address, &progress))?;
+    runtime.spawn(heartbeats(client.clone(), progress.clone(), interval));
+    let mut after = 0;
+    let mut failures = 0;
+    loop {
+        let assignment = match runtime.block_on(await_assignment(&mut client, &progress, after)) {
+            Ok(assignment) => assignment,
+            Err(status) if status.code() == tonic::Code::NotFound => {
+                tracing::warn!(reason = %status.message(), "registering again");
+                runtime.block_on(register(&mut client, &options, &address, &progress))?;
+                after = 0;
+                continue;
+            }
+            Err(status) => bail!("coordinator: {}", status.message()),
+        };
+        if assignment.action == Action::Finish as i32 {
+            tracing::info!("the job is finished");
+            return Ok(());
+        }
+        after = assignment.generation;
+        progress.generation.store(after, Ordering::SeqCst);
+        progress.cancel.send_replace(false);
+        let span = tracing::info_span!(
+            "generation",
+            generation = after,
+            rank = assignment.rank,
+            world_size = assignment.world_size,
+            stage = assignment.stage
+        );
+        let _entered = span.enter();
+        match train_generation(&runtime, &mut client, &options, &mailbox, &progress, &assignment) {
+            Ok(()) => {
+                failures = 0;
+                tracing::info!("stage {} done in this generation", assignment.stage);
+            }
+            Err(error) => {
+                failures += 1;
+                tracing::warn!(error = %format!("{error:#}"), "generation abandoned");
+                if failures >= MAX_CONSECUTIVE_FAILURES {
+                    bail!("{failures} generations in a row failed; last error: {error:#}");
+                }
+            }
+        }
+    }
+}
+
+async fn serve_collective(
+    options: &WorkerOptions,
+    service: CollectiveService,
+) -> anyhow::Result<String> {
+    let listener = tokio::net::TcpListener::bind(&options.listen)
+        .await
+        .with_context(|| format!("cannot listen on {}", options.listen))?;
+    let bound: SocketAddr = listener.local_addr()?;
+    spawn_server(listener, service, &options.token);
+    Ok(options.advertise.clone().unwrap_or_else(|| bound.to_string()))
+}
+
+/// Connects to the coordinator, retrying for a while (it may start after the workers).
+pub async fn connect(address: &str, token: &str) -> anyhow::Result<Client> {
+    let endpoint = tonic::transport::Endpoint::from_shared(address.to_string())
+        .with_context(|| format!("coordinator address `{address}` is not a URL"))?
+        .connect_timeout(Duration::from_secs(2));
+    let deadline = Instant::now() + Duration::from_secs(60);
+    let channel = loop {
+        match endpoint.connect().await {
+            Ok(channel) => break channel,
+            Err(e) if Instant::now() >= deadline => {
+                bail!("cannot reach the coordinator at {address}: {e}")
+            }
+            Err(_) => tokio::time::sleep(Duration::from_millis(200)).await,
+        }
+    };
+    Ok(CoordinatorClient::with_interceptor(channel, proto::AttachToken::new(token)?)
+        .max_decoding_message_size(proto::MAX_MESSAGE_BYTES))
+}
+
+async fn register(
+    client: &mut Client,
+    options: &WorkerOptions,
+    address: &str,
+    progress: &Progress,
+) -> anyhow::Result<Duration> {
+    let reply = client
+        .register(RegisterRequest {
+            protocol_version: proto::PROTOCOL_VERSION,
+            model_config_version: MODEL_CONFIG_VERSION,
+            worker_name: options.name.clone(),
+            collective_address: address.to_string(),
+            device: options.device.clone().unwrap_or_else(|| "job".into()),
+            expected_model_config_json: options.expected_model_config.clone().unwrap_or_default(),
+        })
+        .await
+        .map_err(|status| anyhow!("the coordinator refused registration: {}", status.message()))?
+        .into_inner();
+    progress.worker.store(reply.worker_id, Ordering::SeqCst);
+    tracing::info!(worker = reply.worker_id, job = %reply.job_name, collective = %address, "registered");
+    Ok(Duration::from_secs_f64(reply.heartbeat_interval_s.max(0.05)))
+}
+
+async fn await_assignment(
+    client: &mut Client,
+    progress: &Progress,
+    after: u64,
+) -> Result<Assignment, tonic::Status> {
+    loop {
+        let request = AwaitAssignmentRequest {
+            worker_id: progress.worker.load(Ordering::SeqCst),
+            after_generation: after,
+        };
+        match client.await_assignment(request).await {
+            Ok(reply) => return Ok(reply.into_inner()),
+            Err(status) if status.code() == tonic::Code::Unavailable => {
+                tracing::warn!("coordinator unavailable; retrying");
+                tokio::time::sleep(Duration::from_millis(500)).await;
+            }
+            Err(status) => return Err(status),
+        }
+    }
+}
+
+async fn heartbeats(mut client: Client, progress: Arc<Progress>, interval: Duration) {
+    loop {
+        tokio::time::sleep(interval).await;
+        let generation = progress.generation.load(Ordering::SeqCst);
+        let request = HeartbeatRequest {
+            worker_id: progress.worker.load(Ordering::SeqCst),
+            generation,
+            step: progress.step.load(Ordering::SeqCst),
+        };
+        match client.heartbeat(request).await {
+            Ok(reply) => {
+                let reply = reply.into_inner();
+                if !reply.generation_current
+                    && generation == progress.generation.load(Ordering::SeqCst)
+                    && !*progress.cancel.borrow()
+                {
+                    progress.cancel.send_replace(true);
+                }
+            }
+            Err(status) => tracing::warn!(error = %status.message(), "heartbeat failed"),
+        }
+    }
+}
+
+fn choose_backend(requested: &str) -> anyhow::Result<BackendChoice> {
+    match requested {
+        "cpu" => Ok(BackendChoice::Cpu),
+        "wgpu" => Ok(BackendChoice::Wgpu),
+        "auto" | "" => Ok(
+            if ["/dev/nvidiactl", "/dev/kfd"].iter().any(|p| Path::new(p).exists()) {
+                BackendChoice::Wgpu
+            } else {
+                BackendChoice::Cpu
+            },
+        ),
+        other => bail!("device `{other}`: expected auto, cpu or wgpu"),
+    }
+}
+
+/// Trains the assigned stage from its resume point to its end as one rank of the group.
+fn train_generation(
+    runtime: &Runtime,
+    client: &mut Client,
+    options: &WorkerOptions,
+    mailbox: &crate::collective::Mailbox,
+    progress: &Progress,
+    assignment: &Assignment,
+) -> anyhow::Result<()> {
+    let rank = assignment.rank as usize;
+    let world = assignment.world_size as usize;
+    let model_config: XFactorConfig = serde_json::from_str(&assignment.model_config_json)
+        .context("assignment's model config")?;
+    let mut train: TrainConfig = serde_json::from_str(&assignment.train_config_json)
+        .context("assignment's trainer config")?;
+    let data: DataSpec =
+        serde_json::from_str(&assignment.data_json).context("assignment's data spec")?;
+    let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+    train.shards = options
+        .threads
+        .or((train.shards > 0).then_some(train.shards))
+        .unwrap_or(cores);
+    let backend = choose_backend(options.device.as_deref().unwrap_or(&assignment.device))?;
+    let device = backend.device().autodiff();
+    let scratch = options
+        .scratch
+        .join(format!("worker-{}", progress.worker.load(Ordering::SeqCst)));
+    let lpips = if assignment.lpips_weights.is_empty() {
+        None
+    } else {
+        Some(
+            Lpips::from_file(Path::new(&assignment.lpips_weights), &device)
+                .with_context(|| format!("LPIPS weights {}", assignment.lpips_weights))?,
+        )
+    };
+    let mut trainer = if !assignment.resume_from.is_empty() {
+        let dir = scratch.join("resume");
+        let _ = std::fs::remove_dir_all(&dir);
+        runtime.block_on(checkpoints::download(&assignment.resume_from, &dir))?;
+        Trainer::resume(train.clone(), &dir, lpips, &device)
+            .with_context(|| format!("resuming from {}", assignment.resume_from))?
+    } else if !assignment.init_weights_from.is_empty() {
+        let dir = scratch.join("init");
+        let _ = std::fs::remove_dir_all(&dir);
+        runtime.block_on(checkpoints::download(&assignment.init_weights_from, &dir))?;
+        Trainer::from_weights(train.clone(), &dir, lpips, &device)
+            .with_context(|| format!("initial weights from {}", assignment.init_weights_from))?
+    } else {
+        let model = XFactor::new(&model_config, train.seed, &device)?;
+        Trainer::new(train.clone(), model_config, model, lpips, &device)?
+    };
+    tracing::info!(
+        backend = backend.name(),
+        threads = train.shards,
+        start_step = trainer.step(),
+        total_steps = assignment.total_steps,
+        "training"
+    );
+    let source = runtime.block_on(RankSource::open(&data, world, rank))?;
+    let shard = source.shard_at(trainer.step());
+    if !shard.is_empty() {
+        tracing::info!(sequences = shard.len(), "data shard of this epoch");
+    }
+    let mut ring = runtime.block_on(Ring::connect(
+        mailbox,
+        rank,
+        &assignment.peers,
+        assignment.generation,
+        &options.token,
+        progress.cancel.subscribe(),
+        options.collective_timeout,
+    ))?;
+    let (first, count) = rank_slice(train.global_batch, world, rank);
+    while trainer.step() < assignment.total_steps {
+        let step = trainer.step();
+        let _span = tracing::info_span!("step", step).entered();
+        if *progress.cancel.borrow() {
+            bail!("the coordinator abandoned generation {}", assignment.generation);
+        }
+        let started = Instant::now();
+        let (loss, grads) = trainer
+            .slice_gradients(&source, first, count)
+            .with_context(|| format!("gradients of step {step}"))?;
+        let mut flat = flatten_gradients(trainer.model(), &grads);
+        flat.push(loss);
+        let reduce = runtime
+            .block_on(ring.all_reduce(&mut flat))
+            .with_context(|| format!("all-reduce of step {step}"))?;
+        let loss = flat.pop().unwrap_or(f32::NAN);
+        let grads = unflatten_gradients(trainer.model(), &flat)?;
+        let metrics = trainer.apply_gradients(&grads, loss);
+        let done = trainer.step();
+        progress.step.store(done, Ordering::SeqCst);
+        let checksum_due =
+            done.is_multiple_of(assignment.checksum_every.max(1)) || done == assignment.total_steps;
+        let checksum = checksum_due.then(|| parameter_checksum(trainer.model()));
+        let elapsed = started.elapsed().as_secs_f64();
+        tracing::info!(
+            loss = metrics.loss,
+            lr = metrics.learning_rate,
+            grad_norm = metrics.grad_norm,
+            step_s = elapsed,
+            allreduce_s = reduce.seconds,
+            "step done"
+        );
+        let report = StepReport {
+            worker_id: progress.worker.load(Ordering::SeqCst),
+            generation: assignment.generation,
+            stage: assignment.stage,
+            step,
+            loss: Some(LossTerms {
+                total: metrics.loss,
+                learning_rate: metrics.learning_rate,
+                grad_norm: metrics.grad_norm,
+                applied: metrics.applied,
+            }),
+            parameter_checksum: checksum.unwrap_or(0),
+            checksum_computed: checksum.is_some(),
+            samples_per_s: count as f64 / elapsed.max(1e-9),
+            allreduce_s: reduce.seconds,
+            skipped_frames: source.skipped_frames(),
+        };
+        let ack = runtime
+            .block_on(client.report_step(report))
+            .map_err(|s| anyhow!("step report refused: {}", s.message()))?
+            .into_inner();
+        if !ack.generation_current {
+            bail!("generation {} is no longer current", assignment.generation);
+        }
+        let commit_due = done.is_multiple_of(assignment.checkpoint_every.max(1))
+            || done == assignment.total_steps;
+        if rank == 0 && commit_due {
+            commit(runtime, client, &trainer, &scratch, progress, assignment, done)?;
+        }
+    }
+    Ok(())
+}
+
+fn commit(
+    runtime: &Runtime,
+    client: &mut Client,
+    trainer: &Trainer,
+    scratch: &Path,
+    progress: &Progress,
+    assignment: &Assignment,
+    step: u64,
+) -> anyhow::Result<()> {
+    let _span = tracing::info_span!("checkpoint", step).entered();
+    let dir = scratch.join("save");
+    let _ = std::fs::remove_dir_all(&dir);
+    trainer.save_checkpoint(&dir)?;
+    let location = format!(
+        "{}/step-{step:08}-g{}",
+        assignment.checkpoint_prefix, assignment.generation
+    );
+    runtime.block_on(checkpoints::upload(&dir, &location, assignment.stage, step))?;
+    let ack = runtime
+        .block_on(client.commit_checkpoint(CheckpointCommit {
+            worker_id: progress.worker.load(Ordering::SeqCst),
+            generation: assignment.generation,
+            stage: assignment.stage,
+            step,
+            location: location.clone(),
+        }))
+        .map_err(|s| anyhow!("commit of {location} failed: {}", s.message()))?
+        .into_inner();
+    if !ack.accepted {
+        bail!("commit of {location} refused: {}", ack.reason);
+    }
+    tracing::info!(%location, "checkpoint committed");
+    Ok(())
+}

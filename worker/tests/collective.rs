@@ -1,0 +1,109 @@
+//! The ring all-reduce between in-process ranks on loopback: sums, chunk pipelining, and a
+//! peer that sends a chunk of the wrong size.
+
+use std::time::Duration;
+
+use bytes::Bytes;
+use proto::v1::Chunk;
+use proto::v1::collective_client::CollectiveClient;
+use tokio::sync::watch;
+use worker::collective::{CollectiveError, CollectiveService, Mailbox, Ring, spawn_server};
+
+const TOKEN: &str = "ring-test";
+
+async fn serve() -> (String, std::sync::Arc<Mailbox>) {
+    let service = CollectiveService::default();
+    let mailbox = service.mailbox();
+    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+    let address = listener.local_addr().unwrap().to_string();
+    spawn_server(listener, service, TOKEN);
+    (address, mailbox)
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn three_ranks_sum_in_small_pipelined_chunks() {
+    let mut servers = Vec::new();
+    for _ in 0..3 {
+        servers.push(serve().await);
+    }
+    let peers: Vec<String> = servers.iter().map(|(a, _)| a.clone()).collect();
+    let (_cancel, cancelled) = watch::channel(false);
+    let len = 1001;
+    let mut tasks = Vec::new();
+    for (rank, (_, mailbox)) in servers.into_iter().enumerate() {
+        let peers = peers.clone();
+        let cancelled = cancelled.clone();
+        tasks.push(tokio::spawn(async move {
+            let mut ring = Ring::connect(&mailbox, rank, &peers, 7, TOKEN, cancelled, Duration::from_secs(10))
+                .await
+                .unwrap();
+            ring.set_chunk_values(37);
+            let mut values: Vec<f32> = (0..len).map(|i| (i * (rank + 1)) as f32).collect();
+            for _ in 0..2 {
+                ring.all_reduce(&mut values).await.unwrap();
+                values.iter_mut().for_each(|v| *v /= 6.0);
+            }
+            values
+        }));
+    }
+    for task in tasks {
+        let values = task.await.unwrap();
+        for (i, v) in values.iter().enumerate() {
+            assert!((v - i as f32).abs() <= 1e-3 * (i as f32).max(1.0), "{i}: {v}");
+        }
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_chunk_of_the_wrong_size_is_refused_by_name() {
+    let (address_0, mailbox_0) = serve().await;
+    let (address_1, _) = serve().await;
+    let peers = vec![address_0.clone(), address_1];
+    let (_cancel, cancelled) = watch::channel(false);
+    let honest = tokio::spawn(async move {
+        let mut ring = Ring::connect(&mailbox_0, 0, &peers, 3, TOKEN, cancelled, Duration::from_secs(10))
+            .await
+            .unwrap();
+        let mut values = vec![1.0f32; 100];
+        let result = ring.all_reduce(&mut values).await;
+        (result, values)
+    });
+    let channel = tonic::transport::Endpoint::from_shared(format!("http://{address_0}"))
+        .unwrap()
+        .connect()
+        .await
+        .unwrap();
+    let mut rogue = CollectiveClient::with_interceptor(channel, proto::AttachToken::new(TOKEN).unwrap());
+    let chunk = Chunk {
+        generation: 3,
+        operation: 0,
+        ring_step: 0,
+        segment: 1,
+        offset: 50,
+        values: Bytes::from(vec![0u8; 4 * 49]),
+        sender: 1,
+    };
+    let _ = rogue.push(tokio_stream::iter(vec![chunk])).await;
+    let (result, _) = honest.await.unwrap();
+    match result {
+        Err(CollectiveError::BadChunk { sender, detail }) => {
+            assert_eq!(sender, 1);
+            assert!(detail.contains("196 bytes"), "{detail}");
+            assert!(detail.contains("expected 200"), "{detail}");
+        }
+        other => panic!("expected a bad-chunk error, got {other:?}"),
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_stream_without_the_token_is_refused() {
+    let (address, _) = serve().await;
+    let channel = tonic::transport::Endpoint::from_shared(format!("http://{address}"))
+        .unwrap()
+        .connect()
+        .await
+        .unwrap();
+    let mut client = CollectiveClient::new(channel);
+    let refused = client.push(tokio_stream::iter(Vec::<Chunk>::new())).await.unwrap_err();
+    assert_eq!(refused.code(), tonic::Code::Unauthenticated);
+}
