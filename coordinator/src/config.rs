@@ -31,6 +31,77 @@ pub enum ConfigError {
     },
 }
 
+/// Marks a value a validated type refused, so [`pinpoint`] can find its key and line (serde
+/// reports such errors at the enclosing mapping).
+const REFUSED: &str = "refused value ";
+
+fn refused(value: &str, expectation: &str) -> String {
+    format!("{REFUSED}{value}: {expectation}")
+}
+
+/// Rewrites `<path>: refused value V: <expectation> at line L ...` into
+/// `<path>.<key>: <expectation>, found V at line N`, by finding the key holding `V` in the
+/// mapping that starts at line L.
+fn pinpoint(text: &str, message: &str) -> String {
+    let Some(start) = message.find(REFUSED) else {
+        return message.to_string();
+    };
+    let path = message[..start].trim_end_matches(": ").to_string();
+    let rest = &message[start + REFUSED.len()..];
+    let Some((value, tail)) = rest.split_once(": ") else {
+        return message.to_string();
+    };
+    let (expectation, position) = match tail.split_once(" at line ") {
+        Some((expectation, position)) => (expectation, Some(position)),
+        None => (tail, None),
+    };
+    let first_line: usize = position
+        .and_then(|p| p.split_whitespace().next())
+        .and_then(|l| l.parse().ok())
+        .unwrap_or(1);
+    for (index, line) in text.lines().enumerate().skip(first_line.saturating_sub(1)) {
+        for segment in line.split(['{', ',', '}']) {
+            if let Some((key, found)) = segment.split_once(':')
+                && found.trim() == value
+            {
+                let key = key.trim().trim_start_matches("- ");
+                let full = if path.is_empty() {
+                    key.to_string()
+                } else {
+                    format!("{path}.{key}")
+                };
+                return format!("{full}: {expectation}, found {value} at line {}", index + 1);
+            }
+        }
+    }
+    format!("{path}: {expectation}, found {value} (in the mapping at line {first_line})")
+}
+
+/// Line (1-based) of the block-style key `path` (e.g. `["stage1", "micro_batch"]`).
+fn locate(text: &str, path: &[&str]) -> Option<usize> {
+    let mut depth = 0;
+    let mut indent: Option<usize> = None;
+    for (index, line) in text.lines().enumerate() {
+        let trimmed = line.trim_start();
+        let here = line.len() - trimmed.len();
+        if indent.is_some_and(|i| here <= i) && !trimmed.is_empty() && depth > 0 {
+            return None;
+        }
+        let deeper = match indent {
+            None => here == 0,
+            Some(i) => here > i,
+        };
+        if deeper && trimmed.starts_with(&format!("{}:", path[depth])) {
+            depth += 1;
+            indent = Some(here);
+            if depth == path.len() {
+                return Some(index + 1);
+            }
+        }
+    }
+    None
+}
+
 /// A whole number of at least 1.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
 pub struct Positive(pub u64);
@@ -39,9 +110,10 @@ impl<'de> Deserialize<'de> for Positive {
     fn deserialize<D: Deserializer<'de>>(deserializer: D) -> Result<Self, D::Error> {
         let value = u64::deserialize(deserializer)?;
         if value == 0 {
-            return Err(serde::de::Error::custom(
-                "expected a positive whole number, found 0",
-            ));
+            return Err(serde::de::Error::custom(refused(
+                "0",
+                "expected a positive whole number",
+            )));
         }
         Ok(Self(value))
     }
@@ -55,8 +127,9 @@ impl<'de> Deserialize<'de> for NonNegative {
     fn deserialize<D: Deserializer<'de>>(deserializer: D) -> Result<Self, D::Error> {
         let value = f64::deserialize(deserializer)?;
         if !value.is_finite() || value < 0.0 {
-            return Err(serde::de::Error::custom(format!(
-                "expected a finite number >= 0, found {value}"
+            return Err(serde::de::Error::custom(refused(
+                &value.to_string(),
+                "expected a finite number >= 0",
             )));
         }
         Ok(Self(value))
@@ -71,7 +144,10 @@ impl<'de> Deserialize<'de> for NonEmpty {
     fn deserialize<D: Deserializer<'de>>(deserializer: D) -> Result<Self, D::Error> {
         let value = String::deserialize(deserializer)?;
         if value.trim().is_empty() {
-            return Err(serde::de::Error::custom("expected a non-empty string"));
+            return Err(serde::de::Error::custom(refused(
+                "\"\"",
+                "expected a non-empty string",
+            )));
         }
         Ok(Self(value))
     }
@@ -90,10 +166,12 @@ pub struct ClusterConfig {
     #[serde(default = "default_listen")]
     pub listen: NonEmpty,
     /// Who may join.
+    #[serde(with = "serde_norway::with::singleton_map")]
     pub auth: AuthConfig,
     /// Which XFactor.
     pub model: ModelConfig,
     /// The training data.
+    #[serde(with = "serde_norway::with::singleton_map")]
     pub data: DataConfig,
     /// Stereo-monocular transferability training.
     pub stage1: StageConfig<Stage1Config>,
@@ -313,21 +391,9 @@ impl WithLpipsWeight for Stage2Config {
 impl<'de, O: Deserialize<'de> + WithLpipsWeight> Deserialize<'de> for StageConfig<O> {
     fn deserialize<D: Deserializer<'de>>(deserializer: D) -> Result<Self, D::Error> {
         let raw = RawStage::<O>::deserialize(deserializer)?;
-        if raw.global_batch.0 % raw.micro_batch.0 != 0 {
-            return Err(serde::de::Error::custom(format!(
-                "global_batch {} must be a multiple of micro_batch {}",
-                raw.global_batch.0, raw.micro_batch.0
-            )));
-        }
         let mut objective = raw.objective.unwrap_or_default();
         if let Some(weight) = raw.lpips_weight {
             objective.set_lpips_weight(weight.0);
-        }
-        if objective.lpips_weight() > 0.0 && raw.lpips_weights.is_none() {
-            return Err(serde::de::Error::custom(format!(
-                "lpips_weight is {} but lpips_weights (a safetensors file from tools/convert_lpips_weights.py) is not given; set lpips_weight: 0 to train with L1 alone",
-                objective.lpips_weight()
-            )));
         }
         Ok(Self {
             steps: raw.steps.0,
@@ -422,18 +488,40 @@ impl ClusterConfig {
             path: label.to_string(),
             message,
         };
-        let config: Self = serde_norway::from_str(text).map_err(|e| invalid(e.to_string()))?;
-        config.check().map_err(invalid)?;
+        let config: Self =
+            serde_norway::from_str(text).map_err(|e| invalid(pinpoint(text, &e.to_string())))?;
+        config.check(text).map_err(invalid)?;
         Ok(config)
     }
 
-    /// Checks that span several keys.
-    fn check(&self) -> Result<(), String> {
-        self.model.resolve()?;
+    /// Checks that span several keys; `text` gives their lines.
+    fn check(&self, text: &str) -> Result<(), String> {
+        let at = |path: &[&str]| locate(text, path).map_or(String::new(), |l| format!(" at line {l}"));
+        self.model.resolve().map_err(|e| format!("{e}{}", at(&["model"])))?;
+        let batches = [
+            ("stage1", self.stage1.global_batch, self.stage1.micro_batch, self.stage1.lpips_weight, self.stage1.lpips_weights.is_some()),
+            ("stage2", self.stage2.global_batch, self.stage2.micro_batch, self.stage2.lpips_weight, self.stage2.lpips_weights.is_some()),
+        ];
+        for (stage, global, micro, lpips_weight, has_weights) in batches {
+            if global % micro != 0 {
+                return Err(format!(
+                    "{stage}.micro_batch: global_batch {global} must be a multiple of micro_batch {micro}{}",
+                    at(&[stage, "micro_batch"])
+                ));
+            }
+            if lpips_weight > 0.0 && !has_weights {
+                return Err(format!(
+                    "{stage}.lpips_weight is {lpips_weight} but {stage}.lpips_weights (a safetensors file from tools/convert_lpips_weights.py) is not given; set lpips_weight: 0 to train with L1 alone{}",
+                    at(&[stage])
+                ));
+            }
+        }
         if self.workers.minimum.0 > self.workers.expected.0 {
             return Err(format!(
-                "workers.minimum ({}) exceeds workers.expected ({})",
-                self.workers.minimum.0, self.workers.expected.0
+                "workers.minimum ({}) exceeds workers.expected ({}){}",
+                self.workers.minimum.0,
+                self.workers.expected.0,
+                at(&["workers", "minimum"])
             ));
         }
         if self.workers.heartbeat_timeout_s.0 <= self.workers.heartbeat_interval_s.0 {
@@ -578,7 +666,7 @@ checkpoint:
         let error = error_of(&yaml);
         assert!(error.contains("micro_bacth"), "{error}");
         assert!(error.contains("stage2"), "{error}");
-        assert!(error.contains("line 23"), "{error}");
+        assert!(error.contains("line 21"), "{error}");
         assert!(error.contains("expected one of"), "{error}");
     }
 
@@ -586,20 +674,22 @@ checkpoint:
     fn bad_values_name_the_key_the_line_and_the_expectation() {
         let zero = error_of(&GOOD.replace("  steps: 10", "  steps: 0"));
         assert!(zero.contains("stage1.steps"), "{zero}");
-        assert!(zero.contains("line 14"), "{zero}");
+        assert!(zero.contains("line 13"), "{zero}");
         assert!(zero.contains("positive whole number"), "{zero}");
 
         let negative = error_of(&GOOD.replace("weight: 2,", "weight: -1,"));
         assert!(negative.contains("data.datasets[0].stage1.weight"), "{negative}");
+        assert!(negative.contains("line 11"), "{negative}");
         assert!(negative.contains(">= 0"), "{negative}");
 
         let kind = error_of(&GOOD.replace("kind: re10k", "kind: imagenet"));
         assert!(kind.contains("unknown variant `imagenet`"), "{kind}");
-        assert!(kind.contains("line 10"), "{kind}");
+        assert!(kind.contains("line 9"), "{kind}");
 
         let batch = error_of(&GOOD.replace("  micro_batch: 4", "  micro_batch: 3"));
         assert!(batch.contains("multiple of micro_batch 3"), "{batch}");
-        assert!(batch.contains("stage1"), "{batch}");
+        assert!(batch.contains("stage1.micro_batch"), "{batch}");
+        assert!(batch.contains("line 15"), "{batch}");
 
         let text = error_of(&GOOD.replace("every: 5", "every: often"));
         assert!(text.contains("checkpoint.every"), "{text}");

@@ -39,9 +39,9 @@ async fn three_ranks_sum_in_small_pipelined_chunks() {
                 .unwrap();
             ring.set_chunk_values(37);
             let mut values: Vec<f32> = (0..len).map(|i| (i * (rank + 1)) as f32).collect();
-            for _ in 0..2 {
+            for divisor in [6.0, 3.0] {
                 ring.all_reduce(&mut values).await.unwrap();
-                values.iter_mut().for_each(|v| *v /= 6.0);
+                values.iter_mut().for_each(|v| *v /= divisor);
             }
             values
         }));
