@@ -105,7 +105,7 @@ impl LocalJob {
                 self.frames,
                 &scene,
             );
-            let root = DataRoot::open(&data_dir.display().to_string())?;
+            let root = DataRoot::create(&data_dir.display().to_string())?;
             let frames = dataset.write_re10k(&root, Split::Train, scene.fov_degrees).await?;
             tracing::info!(frames, dir = %data_dir.display(), "generated RE10K-layout dataset");
         }

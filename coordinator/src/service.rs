@@ -54,7 +54,7 @@ impl CoordinatorService {
     pub async fn new(plan: Plan) -> Result<Self, ServeError> {
         let config = &plan.config;
         let checkpoints =
-            DataRoot::open(&config.checkpoint.uri.0).map_err(|e| ServeError::Store(e.to_string()))?;
+            DataRoot::create(&config.checkpoint.uri.0).map_err(|e| ServeError::Store(e.to_string()))?;
         let durable = match checkpoints.read(DURABLE_OBJECT).await {
             Ok(bytes) => {
                 let durable: Durable = serde_json::from_slice(&bytes).map_err(|e| {

@@ -28,7 +28,7 @@ pub struct CommitFile {
 
 /// Uploads every file of `dir` under `location`, then `COMMIT.json`.
 pub async fn upload(dir: &Path, location: &str, stage: u32, step: u64) -> anyhow::Result<()> {
-    let root = DataRoot::open(location)?;
+    let root = DataRoot::create(location)?;
     let mut files = Vec::new();
     let mut entries: Vec<_> = std::fs::read_dir(dir)?.collect::<Result<_, _>>()?;
     entries.sort_by_key(|e| e.file_name());

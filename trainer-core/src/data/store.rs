@@ -103,6 +103,26 @@ impl DataRoot {
         })
     }
 
+    /// Opens a root to write into (checkpoints, generated data): a local directory is created
+    /// first; object-store prefixes need no creating.
+    pub fn create(uri: &str) -> Result<Self, StoreError> {
+        let local = if uri.contains("://") {
+            url::Url::parse(uri)
+                .ok()
+                .filter(|url| url.scheme() == "file")
+                .and_then(|url| url.to_file_path().ok())
+        } else {
+            Some(std::path::PathBuf::from(uri))
+        };
+        if let Some(dir) = local {
+            std::fs::create_dir_all(&dir).map_err(|e| StoreError::Open {
+                uri: uri.to_string(),
+                reason: format!("cannot create the directory: {e}"),
+            })?;
+        }
+        Self::open(uri)
+    }
+
     /// A root over an existing store (the in-memory store of tests).
     pub fn from_store(store: Arc<dyn ObjectStore>, prefix: &str, label: &str) -> Self {
         Self {
