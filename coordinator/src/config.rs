@@ -356,7 +356,9 @@ struct RawStage<O> {
 fn fitted_schedule(steps: u64) -> Schedule {
     let paper = Schedule::default();
     Schedule {
-        warmup_steps: (steps * paper.warmup_steps / paper.total_steps).max(1).min(steps),
+        warmup_steps: (steps * paper.warmup_steps / paper.total_steps)
+            .max(1)
+            .min(steps),
         total_steps: steps,
         ..paper
     }
@@ -496,11 +498,26 @@ impl ClusterConfig {
 
     /// Checks that span several keys; `text` gives their lines.
     fn check(&self, text: &str) -> Result<(), String> {
-        let at = |path: &[&str]| locate(text, path).map_or(String::new(), |l| format!(" at line {l}"));
-        self.model.resolve().map_err(|e| format!("{e}{}", at(&["model"])))?;
+        let at =
+            |path: &[&str]| locate(text, path).map_or(String::new(), |l| format!(" at line {l}"));
+        self.model
+            .resolve()
+            .map_err(|e| format!("{e}{}", at(&["model"])))?;
         let batches = [
-            ("stage1", self.stage1.global_batch, self.stage1.micro_batch, self.stage1.lpips_weight, self.stage1.lpips_weights.is_some()),
-            ("stage2", self.stage2.global_batch, self.stage2.micro_batch, self.stage2.lpips_weight, self.stage2.lpips_weights.is_some()),
+            (
+                "stage1",
+                self.stage1.global_batch,
+                self.stage1.micro_batch,
+                self.stage1.lpips_weight,
+                self.stage1.lpips_weights.is_some(),
+            ),
+            (
+                "stage2",
+                self.stage2.global_batch,
+                self.stage2.micro_batch,
+                self.stage2.lpips_weight,
+                self.stage2.lpips_weights.is_some(),
+            ),
         ];
         for (stage, global, micro, lpips_weight, has_weights) in batches {
             if global % micro != 0 {
@@ -655,7 +672,10 @@ checkpoint:
         assert_eq!(sampler.datasets[0].weight, 2.0);
         assert_eq!(sampler.datasets[0].window_end, 9);
         let stage2 = config.sampler(2);
-        assert_eq!(stage2.datasets[0].window_end, 200, "paper default for RE10K");
+        assert_eq!(
+            stage2.datasets[0].window_end, 200,
+            "paper default for RE10K"
+        );
         assert_eq!(stage2.frames, 6);
         assert_eq!(config.auth.resolve().unwrap(), "abc");
     }
@@ -678,7 +698,10 @@ checkpoint:
         assert!(zero.contains("positive whole number"), "{zero}");
 
         let negative = error_of(&GOOD.replace("weight: 2,", "weight: -1,"));
-        assert!(negative.contains("data.datasets[0].stage1.weight"), "{negative}");
+        assert!(
+            negative.contains("data.datasets[0].stage1.weight"),
+            "{negative}"
+        );
         assert!(negative.contains("line 11"), "{negative}");
         assert!(negative.contains(">= 0"), "{negative}");
 
@@ -698,10 +721,14 @@ checkpoint:
 
     #[test]
     fn lpips_without_weights_and_inconsistent_workers_are_refused() {
-        let lpips = error_of(&GOOD.replace("  lpips_weight: 0\nstage2", "  lpips_weight: 0.5\nstage2"));
+        let lpips =
+            error_of(&GOOD.replace("  lpips_weight: 0\nstage2", "  lpips_weight: 0.5\nstage2"));
         assert!(lpips.contains("lpips_weights"), "{lpips}");
         let workers = error_of(&format!("{GOOD}workers:\n  expected: 2\n  minimum: 3\n"));
-        assert!(workers.contains("workers.minimum (3) exceeds workers.expected (2)"), "{workers}");
+        assert!(
+            workers.contains("workers.minimum (3) exceeds workers.expected (2)"),
+            "{workers}"
+        );
         let malformed = error_of("job: [unclosed");
         assert!(malformed.contains("line 1"), "{malformed}");
         let missing = error_of(&GOOD.replace("checkpoint:\n  uri: /tmp/ckpt\n  every: 5\n", ""));
@@ -710,9 +737,15 @@ checkpoint:
 
     #[test]
     fn a_token_variable_that_is_not_set_is_named() {
-        let yaml = GOOD.replace("  token: abc", "  token_env: XFACTOR_TEST_TOKEN_THAT_IS_NOT_SET");
+        let yaml = GOOD.replace(
+            "  token: abc",
+            "  token_env: XFACTOR_TEST_TOKEN_THAT_IS_NOT_SET",
+        );
         let config = ClusterConfig::from_yaml(&yaml, "cluster.yaml").unwrap();
         let error = config.auth.resolve().unwrap_err();
-        assert!(error.contains("XFACTOR_TEST_TOKEN_THAT_IS_NOT_SET"), "{error}");
+        assert!(
+            error.contains("XFACTOR_TEST_TOKEN_THAT_IS_NOT_SET"),
+            "{error}"
+        );
     }
 }

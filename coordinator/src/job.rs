@@ -304,7 +304,9 @@ impl JobState {
             self.last_loss = loss.total;
         }
         if report.checksum_computed {
-            record.checksums.insert(rank as u32, report.parameter_checksum);
+            record
+                .checksums
+                .insert(rank as u32, report.parameter_checksum);
             let distinct: std::collections::BTreeSet<u32> =
                 record.checksums.values().copied().collect();
             if distinct.len() > 1 {
@@ -327,7 +329,11 @@ impl JobState {
                 "generation {generation} is no longer current; commit refused"
             ));
         }
-        if !self.group.as_ref().is_some_and(|g| g.members.contains(&worker)) {
+        if !self
+            .group
+            .as_ref()
+            .is_some_and(|g| g.members.contains(&worker))
+        {
             return Err(format!("worker {worker} is not in the current group"));
         }
         if commit.stage != self.durable.stage {

@@ -106,7 +106,9 @@ impl LocalJob {
                 &scene,
             );
             let root = DataRoot::create(&data_dir.display().to_string())?;
-            let frames = dataset.write_re10k(&root, Split::Train, scene.fov_degrees).await?;
+            let frames = dataset
+                .write_re10k(&root, Split::Train, scene.fov_degrees)
+                .await?;
             tracing::info!(frames, dir = %data_dir.display(), "generated RE10K-layout dataset");
         }
         std::fs::write(self.config_path(), self.yaml(&data_dir))?;
@@ -119,7 +121,11 @@ impl LocalJob {
         let _ = writeln!(yaml, "seed: {}", self.seed);
         let _ = writeln!(yaml, "listen: 127.0.0.1:{}", self.port);
         let _ = writeln!(yaml, "auth:\n  token: {}", self.token());
-        let _ = writeln!(yaml, "model:\n  preset: tiny\n  image_size: {}", self.image_size);
+        let _ = writeln!(
+            yaml,
+            "model:\n  preset: tiny\n  image_size: {}",
+            self.image_size
+        );
         if self.in_memory {
             let _ = writeln!(
                 yaml,
@@ -189,5 +195,7 @@ impl LocalJob {
 
 /// A free TCP port on loopback (bound then released; fine for local runs and tests).
 pub fn free_port() -> std::io::Result<u16> {
-    Ok(std::net::TcpListener::bind("127.0.0.1:0")?.local_addr()?.port())
+    Ok(std::net::TcpListener::bind("127.0.0.1:0")?
+        .local_addr()?
+        .port())
 }

@@ -3,12 +3,12 @@
 use std::path::Path;
 
 use anyhow::{Context, bail};
-use trainer_core::cli::{Flags, init_logging};
 use coordinator::config::ClusterConfig;
 use coordinator::plan::Plan;
 use coordinator::service::CoordinatorService;
 use proto::v1::StatusRequest;
 use proto::v1::coordinator_client::CoordinatorClient;
+use trainer_core::cli::{Flags, init_logging};
 
 const USAGE: &str = "usage:
   xfactor-coordinator run --config CLUSTER.yaml [--dry-run] [--report REPORT.json] [--log-format human|json]
@@ -67,7 +67,10 @@ async fn run(flags: &Flags) -> anyhow::Result<()> {
     }
     tracing::info!(outcome = %report.outcome, restarts = report.restarts, mismatches = report.checksum_mismatches.len(), "job ended");
     if !report.checksum_mismatches.is_empty() {
-        bail!("ranks disagreed on parameters: {:?}", report.checksum_mismatches);
+        bail!(
+            "ranks disagreed on parameters: {:?}",
+            report.checksum_mismatches
+        );
     }
     Ok(())
 }
@@ -95,7 +98,11 @@ async fn status(flags: &Flags) -> anyhow::Result<()> {
         status.total_steps,
         status.last_loss,
         status.restarts,
-        if status.last_commit.is_empty() { "-" } else { &status.last_commit }
+        if status.last_commit.is_empty() {
+            "-"
+        } else {
+            &status.last_commit
+        }
     );
     Ok(())
 }

@@ -242,7 +242,11 @@ impl Plan {
                         manifest.frame_counts().iter().sum::<usize>()
                     );
                 }
-                let sequences: usize = self.manifests.iter().map(|(_, _, m)| m.sequences.len()).sum();
+                let sequences: usize = self
+                    .manifests
+                    .iter()
+                    .map(|(_, _, m)| m.sequences.len())
+                    .sum();
                 let epoch_steps = steps_per_epoch(sequences, self.stages[0].train.global_batch);
                 let _ = writeln!(out, "epoch: {epoch_steps} steps; shards of epoch 0:");
                 for rank in 0..world {

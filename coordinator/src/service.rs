@@ -12,8 +12,8 @@ use proto::v1::{
 };
 use tokio::sync::{Mutex, Notify};
 use tonic::service::interceptor::InterceptedService;
-use tracing::Instrument;
 use tonic::{Request, Response, Status};
+use tracing::Instrument;
 use trainer_core::data::store::DataRoot;
 
 use crate::job::{Commit, Durable, JobState, Report, Timing};
@@ -53,8 +53,8 @@ impl CoordinatorService {
     /// coordinator continues where the last one committed.
     pub async fn new(plan: Plan) -> Result<Self, ServeError> {
         let config = &plan.config;
-        let checkpoints =
-            DataRoot::create(&config.checkpoint.uri.0).map_err(|e| ServeError::Store(e.to_string()))?;
+        let checkpoints = DataRoot::create(&config.checkpoint.uri.0)
+            .map_err(|e| ServeError::Store(e.to_string()))?;
         let durable = match checkpoints.read(DURABLE_OBJECT).await {
             Ok(bytes) => {
                 let durable: Durable = serde_json::from_slice(&bytes).map_err(|e| {
@@ -170,7 +170,9 @@ impl CoordinatorService {
             .ok_or_else(|| format!("{location}/COMMIT.json lists no files"))?;
         for file in files {
             let (Some(name), Some(size)) = (file["name"].as_str(), file["bytes"].as_u64()) else {
-                return Err(format!("{location}/COMMIT.json has a malformed entry {file}"));
+                return Err(format!(
+                    "{location}/COMMIT.json has a malformed entry {file}"
+                ));
             };
             match listed.iter().find(|l| l.path == name) {
                 Some(found) if found.size == size => {}
@@ -212,11 +214,11 @@ impl Coordinator for CoordinatorService {
         request: Request<HeartbeatRequest>,
     ) -> Result<Response<HeartbeatReply>, Status> {
         let request = request.into_inner();
-        let (known, generation_current) =
-            self.state
-                .lock()
-                .await
-                .heartbeat(request.worker_id, request.generation, Instant::now());
+        let (known, generation_current) = self.state.lock().await.heartbeat(
+            request.worker_id,
+            request.generation,
+            Instant::now(),
+        );
         Ok(Response::new(HeartbeatReply {
             generation_current,
             known,
@@ -225,7 +227,11 @@ impl Coordinator for CoordinatorService {
 
     async fn report_step(&self, request: Request<StepReport>) -> Result<Response<StepAck>, Status> {
         let report = request.into_inner();
-        let span = tracing::debug_span!("rpc_report_step", worker = report.worker_id, step = report.step);
+        let span = tracing::debug_span!(
+            "rpc_report_step",
+            worker = report.worker_id,
+            step = report.step
+        );
         async {
             let mut state = self.state.lock().await;
             state.heartbeat(report.worker_id, report.generation, Instant::now());
@@ -245,7 +251,10 @@ impl Coordinator for CoordinatorService {
         self.record_commit(commit).instrument(span).await
     }
 
-    async fn status(&self, _request: Request<StatusRequest>) -> Result<Response<JobStatus>, Status> {
+    async fn status(
+        &self,
+        _request: Request<StatusRequest>,
+    ) -> Result<Response<JobStatus>, Status> {
         Ok(Response::new(self.state.lock().await.status()))
     }
 }
@@ -267,9 +276,12 @@ impl CoordinatorService {
         }
         let mut state = self.state.lock().await;
         if !request.expected_model_config_json.is_empty() {
-            let job = serde_json::to_value(&state.plan().model).map_err(|e| Status::internal(e.to_string()))?;
-            let worker: serde_json::Value = serde_json::from_str(&request.expected_model_config_json)
-                .map_err(|e| Status::invalid_argument(format!("expected_model_config_json is not JSON: {e}")))?;
+            let job = serde_json::to_value(&state.plan().model)
+                .map_err(|e| Status::internal(e.to_string()))?;
+            let worker: serde_json::Value =
+                serde_json::from_str(&request.expected_model_config_json).map_err(|e| {
+                    Status::invalid_argument(format!("expected_model_config_json is not JSON: {e}"))
+                })?;
             let differences = differing_fields(&job, &worker);
             if !differences.is_empty() {
                 return Err(Status::failed_precondition(format!(
@@ -281,7 +293,11 @@ impl CoordinatorService {
         if request.collective_address.is_empty() {
             return Err(Status::invalid_argument("collective_address is empty"));
         }
-        let id = state.register(request.worker_name, request.collective_address, Instant::now());
+        let id = state.register(
+            request.worker_name,
+            request.collective_address,
+            Instant::now(),
+        );
         let job_name = state.plan().config.job.0.clone();
         drop(state);
         self.changed.notify_waiters();
@@ -292,12 +308,19 @@ impl CoordinatorService {
         }))
     }
 
-    async fn assign(&self, request: AwaitAssignmentRequest) -> Result<Response<Assignment>, Status> {
+    async fn assign(
+        &self,
+        request: AwaitAssignmentRequest,
+    ) -> Result<Response<Assignment>, Status> {
         loop {
             let notified = self.changed.notified();
             {
                 let mut state = self.state.lock().await;
-                match state.request_assignment(request.worker_id, request.after_generation, Instant::now()) {
+                match state.request_assignment(
+                    request.worker_id,
+                    request.after_generation,
+                    Instant::now(),
+                ) {
                     Err(message) => return Err(Status::not_found(message)),
                     Ok(Some(assignment)) => return Ok(Response::new(assignment)),
                     Ok(None) => {}
@@ -337,7 +360,8 @@ impl CoordinatorService {
             }
             state.durable().clone()
         };
-        let json = serde_json::to_vec_pretty(&durable).map_err(|e| Status::internal(e.to_string()))?;
+        let json =
+            serde_json::to_vec_pretty(&durable).map_err(|e| Status::internal(e.to_string()))?;
         self.checkpoints
             .write(DURABLE_OBJECT, json)
             .await
@@ -348,7 +372,6 @@ impl CoordinatorService {
             reason: String::new(),
         }))
     }
-
 }
 
 /// `key: job vs worker` for every field whose value differs.
@@ -362,8 +385,13 @@ fn differing_fields(job: &serde_json::Value, worker: &serde_json::Value) -> Vec<
     keys.into_iter()
         .filter(|k| job.get(*k) != worker.get(*k))
         .map(|k| {
-            let show = |v: Option<&serde_json::Value>| v.map_or("(absent)".to_string(), |v| v.to_string());
-            format!("{k}: job {} vs worker {}", show(job.get(k)), show(worker.get(k)))
+            let show =
+                |v: Option<&serde_json::Value>| v.map_or("(absent)".to_string(), |v| v.to_string());
+            format!(
+                "{k}: job {} vs worker {}",
+                show(job.get(k)),
+                show(worker.get(k))
+            )
         })
         .collect()
 }

@@ -63,7 +63,11 @@ impl Running {
         let deadline = Instant::now() + limit;
         loop {
             if let Some(status) = self.coordinator.try_wait().unwrap() {
-                assert!(status.success(), "coordinator failed: {status}\n{}", self.logs());
+                assert!(
+                    status.success(),
+                    "coordinator failed: {status}\n{}",
+                    self.logs()
+                );
                 break;
             }
             if Instant::now() > deadline {
@@ -191,7 +195,10 @@ fn two_workers_of_four_equal_one_worker_of_eight() {
     }
     let mut worst = 0.0f32;
     for name in one_weights.names_with_prefix("") {
-        let (a, b) = (two_weights.get(name).unwrap(), one_weights.get(name).unwrap());
+        let (a, b) = (
+            two_weights.get(name).unwrap(),
+            one_weights.get(name).unwrap(),
+        );
         for (x, y) in a.values.iter().zip(&b.values) {
             worst = worst.max((x - y).abs());
         }

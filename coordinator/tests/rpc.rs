@@ -43,7 +43,9 @@ fn request(protocol: u32, model: &str) -> RegisterRequest {
 async fn refusals_name_their_reason() {
     let dir = tempfile::tempdir().unwrap();
     let port = free_port().unwrap();
-    let config = ClusterConfig::from_yaml(&yaml(port, &dir.path().display().to_string()), "test.yaml").unwrap();
+    let config =
+        ClusterConfig::from_yaml(&yaml(port, &dir.path().display().to_string()), "test.yaml")
+            .unwrap();
     let model = serde_json::to_value(config.model_config().unwrap()).unwrap();
     let plan = Plan::build(config).await.unwrap();
     let service = CoordinatorService::new(plan).await.unwrap();
@@ -53,7 +55,11 @@ async fn refusals_name_their_reason() {
     }));
     let address = format!("http://127.0.0.1:{port}");
     let channel = loop {
-        match tonic::transport::Endpoint::from_shared(address.clone()).unwrap().connect().await {
+        match tonic::transport::Endpoint::from_shared(address.clone())
+            .unwrap()
+            .connect()
+            .await
+        {
             Ok(channel) => break channel,
             Err(_) => tokio::time::sleep(Duration::from_millis(50)).await,
         }
@@ -62,13 +68,19 @@ async fn refusals_name_their_reason() {
     let mut anonymous = CoordinatorClient::new(channel.clone());
     let missing = anonymous.status(StatusRequest {}).await.unwrap_err();
     assert_eq!(missing.code(), tonic::Code::Unauthenticated);
-    assert!(missing.message().contains("missing job token"), "{missing:?}");
+    assert!(
+        missing.message().contains("missing job token"),
+        "{missing:?}"
+    );
 
     let mut wrong = CoordinatorClient::with_interceptor(
         channel.clone(),
         proto::AttachToken::new("guessed").unwrap(),
     );
-    let refused = wrong.register(request(proto::PROTOCOL_VERSION, "")).await.unwrap_err();
+    let refused = wrong
+        .register(request(proto::PROTOCOL_VERSION, ""))
+        .await
+        .unwrap_err();
     assert_eq!(refused.code(), tonic::Code::Unauthenticated);
     assert!(refused.message().contains("wrong job token"));
 
@@ -76,17 +88,34 @@ async fn refusals_name_their_reason() {
         channel,
         proto::AttachToken::new("right-token").unwrap(),
     );
-    let protocol = client.register(request(proto::PROTOCOL_VERSION + 1, "")).await.unwrap_err();
+    let protocol = client
+        .register(request(proto::PROTOCOL_VERSION + 1, ""))
+        .await
+        .unwrap_err();
     assert_eq!(protocol.code(), tonic::Code::FailedPrecondition);
-    assert!(protocol.message().contains(&format!("protocol version {}", proto::PROTOCOL_VERSION + 1)), "{protocol:?}");
+    assert!(
+        protocol
+            .message()
+            .contains(&format!("protocol version {}", proto::PROTOCOL_VERSION + 1)),
+        "{protocol:?}"
+    );
 
     let mut other = model.clone();
     other["width"] = serde_json::json!(64);
-    let differs = client.register(request(proto::PROTOCOL_VERSION, &other.to_string())).await.unwrap_err();
+    let differs = client
+        .register(request(proto::PROTOCOL_VERSION, &other.to_string()))
+        .await
+        .unwrap_err();
     assert_eq!(differs.code(), tonic::Code::FailedPrecondition);
-    assert!(differs.message().contains("width: job 32 vs worker 64"), "{differs:?}");
+    assert!(
+        differs.message().contains("width: job 32 vs worker 64"),
+        "{differs:?}"
+    );
 
-    let accepted = client.register(request(proto::PROTOCOL_VERSION, &model.to_string())).await.unwrap();
+    let accepted = client
+        .register(request(proto::PROTOCOL_VERSION, &model.to_string()))
+        .await
+        .unwrap();
     assert!(accepted.into_inner().worker_id > 0);
     let status = client.status(StatusRequest {}).await.unwrap().into_inner();
     assert_eq!(status.job_name, "rpc-test");

@@ -37,7 +37,10 @@ impl AttachToken {
 }
 
 impl tonic::service::Interceptor for AttachToken {
-    fn call(&mut self, mut request: tonic::Request<()>) -> Result<tonic::Request<()>, tonic::Status> {
+    fn call(
+        &mut self,
+        mut request: tonic::Request<()>,
+    ) -> Result<tonic::Request<()>, tonic::Status> {
         request
             .metadata_mut()
             .insert(AUTHORIZATION, self.header.clone());
@@ -91,7 +94,10 @@ pub enum TokenError {
 impl std::fmt::Display for TokenError {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         match self {
-            Self::NotAscii => write!(f, "the job token must be visible ASCII without spaces at the ends"),
+            Self::NotAscii => write!(
+                f,
+                "the job token must be visible ASCII without spaces at the ends"
+            ),
         }
     }
 }

@@ -48,7 +48,8 @@ impl Flags {
 
     /// The value of `--name`, or an error saying it is required.
     pub fn require(&self, name: &str) -> Result<&str, String> {
-        self.get(name).ok_or_else(|| format!("--{name} is required"))
+        self.get(name)
+            .ok_or_else(|| format!("--{name} is required"))
     }
 
     /// Whether the switch `--name` was given.

@@ -25,7 +25,13 @@ fn main() {
     let binary = env!("CARGO_BIN_EXE_xfactor-worker");
     let spawn = |rank: usize| {
         Command::new(binary)
-            .args(["allreduce-bench", "--rank", &rank.to_string(), "--peers", &peers])
+            .args([
+                "allreduce-bench",
+                "--rank",
+                &rank.to_string(),
+                "--peers",
+                &peers,
+            ])
             .args(["--sizes-mb", sizes, "--repeats", &repeats])
             .stdout(Stdio::piped())
             .spawn()

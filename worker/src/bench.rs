@@ -51,7 +51,9 @@ pub fn run_rank(flags: &Flags) -> anyhow::Result<()> {
         .await?;
         for size in sizes {
             let values = ((size * 1e6) / 4.0) as usize;
-            let mut buffer: Vec<f32> = (0..values).map(|i| (i % 1000) as f32 + rank as f32).collect();
+            let mut buffer: Vec<f32> = (0..values)
+                .map(|i| (i % 1000) as f32 + rank as f32)
+                .collect();
             let mut times = Vec::new();
             for run in 0..=repeats {
                 let stats = ring.all_reduce(&mut buffer).await?;

@@ -167,6 +167,7 @@ pub fn spawn_server(listener: tokio::net::TcpListener, service: CollectiveServic
         tonic::transport::Server::builder()
             .initial_stream_window_size(Some(16 * 1024 * 1024))
             .initial_connection_window_size(Some(32 * 1024 * 1024))
+            .max_frame_size(Some(1024 * 1024))
             .tcp_nodelay(true)
             .add_service(server)
             .serve_with_incoming(tokio_stream::wrappers::TcpListenerStream::new(listener)),
@@ -278,7 +279,13 @@ impl Ring {
             .map(move |start| (start, (start + step).min(end)))
     }
 
-    fn send(&self, ring_step: u32, segment: usize, begin: usize, values: &[f32]) -> Result<(), CollectiveError> {
+    fn send(
+        &self,
+        ring_step: u32,
+        segment: usize,
+        begin: usize,
+        values: &[f32],
+    ) -> Result<(), CollectiveError> {
         let mut bytes = Vec::with_capacity(values.len() * 4);
         for value in values {
             bytes.extend_from_slice(&value.to_le_bytes());
@@ -392,7 +399,10 @@ impl Ring {
                 chunk.generation, chunk.operation, self.generation, self.operation
             ));
         }
-        if chunk.ring_step != step || chunk.segment as usize != segment || chunk.offset as usize != begin {
+        if chunk.ring_step != step
+            || chunk.segment as usize != segment
+            || chunk.offset as usize != begin
+        {
             return bad(format!(
                 "ring step {} segment {} offset {}, expected ring step {step} segment {segment} offset {begin}",
                 chunk.ring_step, chunk.segment, chunk.offset

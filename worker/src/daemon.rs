@@ -116,7 +116,14 @@ pub fn run(options: WorkerOptions) -> anyhow::Result<()> {
             stage = assignment.stage
         );
         let _entered = span.enter();
-        match train_generation(&runtime, &mut client, &options, &mailbox, &progress, &assignment) {
+        match train_generation(
+            &runtime,
+            &mut client,
+            &options,
+            &mailbox,
+            &progress,
+            &assignment,
+        ) {
             Ok(()) => {
                 failures = 0;
                 tracing::info!("stage {} done in this generation", assignment.stage);
@@ -141,7 +148,10 @@ async fn serve_collective(
         .with_context(|| format!("cannot listen on {}", options.listen))?;
     let bound: SocketAddr = listener.local_addr()?;
     spawn_server(listener, service, &options.token);
-    Ok(options.advertise.clone().unwrap_or_else(|| bound.to_string()))
+    Ok(options
+        .advertise
+        .clone()
+        .unwrap_or_else(|| bound.to_string()))
 }
 
 /// Connects to the coordinator, retrying for a while (it may start after the workers).
@@ -159,8 +169,10 @@ pub async fn connect(address: &str, token: &str) -> anyhow::Result<Client> {
             Err(_) => tokio::time::sleep(Duration::from_millis(200)).await,
         }
     };
-    Ok(CoordinatorClient::with_interceptor(channel, proto::AttachToken::new(token)?)
-        .max_decoding_message_size(proto::MAX_MESSAGE_BYTES))
+    Ok(
+        CoordinatorClient::with_interceptor(channel, proto::AttachToken::new(token)?)
+            .max_decoding_message_size(proto::MAX_MESSAGE_BYTES),
+    )
 }
 
 async fn register(
@@ -183,7 +195,9 @@ async fn register(
         .into_inner();
     progress.worker.store(reply.worker_id, Ordering::SeqCst);
     tracing::info!(worker = reply.worker_id, job = %reply.job_name, collective = %address, "registered");
-    Ok(Duration::from_secs_f64(reply.heartbeat_interval_s.max(0.05)))
+    Ok(Duration::from_secs_f64(
+        reply.heartbeat_interval_s.max(0.05),
+    ))
 }
 
 async fn await_assignment(
@@ -236,7 +250,10 @@ fn choose_backend(requested: &str) -> anyhow::Result<BackendChoice> {
         "cpu" => Ok(BackendChoice::Cpu),
         "wgpu" => Ok(BackendChoice::Wgpu),
         "auto" | "" => Ok(
-            if ["/dev/nvidiactl", "/dev/kfd"].iter().any(|p| Path::new(p).exists()) {
+            if ["/dev/nvidiactl", "/dev/kfd"]
+                .iter()
+                .any(|p| Path::new(p).exists())
+            {
                 BackendChoice::Wgpu
             } else {
                 BackendChoice::Cpu
@@ -257,8 +274,8 @@ fn train_generation(
 ) -> anyhow::Result<()> {
     let rank = assignment.rank as usize;
     let world = assignment.world_size as usize;
-    let model_config: XFactorConfig = serde_json::from_str(&assignment.model_config_json)
-        .context("assignment's model config")?;
+    let model_config: XFactorConfig =
+        serde_json::from_str(&assignment.model_config_json).context("assignment's model config")?;
     let mut train: TrainConfig = serde_json::from_str(&assignment.train_config_json)
         .context("assignment's trainer config")?;
     let data: DataSpec =
@@ -323,7 +340,10 @@ fn train_generation(
         let step = trainer.step();
         let _span = tracing::info_span!("step", step).entered();
         if *progress.cancel.borrow() {
-            bail!("the coordinator abandoned generation {}", assignment.generation);
+            bail!(
+                "the coordinator abandoned generation {}",
+                assignment.generation
+            );
         }
         let started = Instant::now();
         let (loss, grads) = trainer
@@ -378,7 +398,9 @@ fn train_generation(
         let commit_due = done.is_multiple_of(assignment.checkpoint_every.max(1))
             || done == assignment.total_steps;
         if rank == 0 && commit_due {
-            commit(runtime, client, &trainer, &scratch, progress, assignment, done)?;
+            commit(
+                runtime, client, &trainer, &scratch, progress, assignment, done,
+            )?;
         }
     }
     Ok(())

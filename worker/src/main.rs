@@ -43,16 +43,24 @@ fn main() -> anyhow::Result<()> {
     init_logging(flags.get("log-format")).map_err(anyhow::Error::msg)?;
     let token = match (flags.get("token"), flags.get("token-env")) {
         (Some(token), _) => token.to_string(),
-        (None, Some(var)) => std::env::var(var).with_context(|| format!("--token-env: {var} is not set"))?,
+        (None, Some(var)) => {
+            std::env::var(var).with_context(|| format!("--token-env: {var} is not set"))?
+        }
         (None, None) => bail!("give --token or --token-env\n{USAGE}"),
     };
     let threads = flags
         .get("threads")
-        .map(|t| t.parse::<usize>().with_context(|| format!("--threads `{t}` is not a whole number")))
+        .map(|t| {
+            t.parse::<usize>()
+                .with_context(|| format!("--threads `{t}` is not a whole number"))
+        })
         .transpose()?;
     let timeout = flags
         .get("collective-timeout-s")
-        .map(|t| t.parse::<f64>().with_context(|| format!("--collective-timeout-s `{t}` is not a number")))
+        .map(|t| {
+            t.parse::<f64>()
+                .with_context(|| format!("--collective-timeout-s `{t}` is not a number"))
+        })
         .transpose()?
         .unwrap_or(120.0);
     let expected_model_config = flags
@@ -64,7 +72,10 @@ fn main() -> anyhow::Result<()> {
         None => std::env::temp_dir().join(format!("xfactor-worker-{}", std::process::id())),
     };
     let options = WorkerOptions {
-        coordinator: flags.require("coordinator").map_err(anyhow::Error::msg)?.to_string(),
+        coordinator: flags
+            .require("coordinator")
+            .map_err(anyhow::Error::msg)?
+            .to_string(),
         token,
         listen: flags.get("listen").unwrap_or("127.0.0.1:0").to_string(),
         advertise: flags.get("advertise").map(str::to_string),

@@ -34,9 +34,17 @@ async fn three_ranks_sum_in_small_pipelined_chunks() {
         let peers = peers.clone();
         let cancelled = cancelled.clone();
         tasks.push(tokio::spawn(async move {
-            let mut ring = Ring::connect(&mailbox, rank, &peers, 7, TOKEN, cancelled, Duration::from_secs(10))
-                .await
-                .unwrap();
+            let mut ring = Ring::connect(
+                &mailbox,
+                rank,
+                &peers,
+                7,
+                TOKEN,
+                cancelled,
+                Duration::from_secs(10),
+            )
+            .await
+            .unwrap();
             ring.set_chunk_values(37);
             let mut values: Vec<f32> = (0..len).map(|i| (i * (rank + 1)) as f32).collect();
             for divisor in [6.0, 3.0] {
@@ -49,7 +57,10 @@ async fn three_ranks_sum_in_small_pipelined_chunks() {
     for task in tasks {
         let values = task.await.unwrap();
         for (i, v) in values.iter().enumerate() {
-            assert!((v - i as f32).abs() <= 1e-3 * (i as f32).max(1.0), "{i}: {v}");
+            assert!(
+                (v - i as f32).abs() <= 1e-3 * (i as f32).max(1.0),
+                "{i}: {v}"
+            );
         }
     }
 }
@@ -61,9 +72,17 @@ async fn a_chunk_of_the_wrong_size_is_refused_by_name() {
     let peers = vec![address_0.clone(), address_1];
     let (_cancel, cancelled) = watch::channel(false);
     let honest = tokio::spawn(async move {
-        let mut ring = Ring::connect(&mailbox_0, 0, &peers, 3, TOKEN, cancelled, Duration::from_secs(10))
-            .await
-            .unwrap();
+        let mut ring = Ring::connect(
+            &mailbox_0,
+            0,
+            &peers,
+            3,
+            TOKEN,
+            cancelled,
+            Duration::from_secs(10),
+        )
+        .await
+        .unwrap();
         let mut values = vec![1.0f32; 100];
         let result = ring.all_reduce(&mut values).await;
         (result, values)
@@ -73,7 +92,8 @@ async fn a_chunk_of_the_wrong_size_is_refused_by_name() {
         .connect()
         .await
         .unwrap();
-    let mut rogue = CollectiveClient::with_interceptor(channel, proto::AttachToken::new(TOKEN).unwrap());
+    let mut rogue =
+        CollectiveClient::with_interceptor(channel, proto::AttachToken::new(TOKEN).unwrap());
     let chunk = Chunk {
         generation: 3,
         operation: 0,
@@ -104,6 +124,9 @@ async fn a_stream_without_the_token_is_refused() {
         .await
         .unwrap();
     let mut client = CollectiveClient::new(channel);
-    let refused = client.push(tokio_stream::iter(Vec::<Chunk>::new())).await.unwrap_err();
+    let refused = client
+        .push(tokio_stream::iter(Vec::<Chunk>::new()))
+        .await
+        .unwrap_err();
     assert_eq!(refused.code(), tonic::Code::Unauthenticated);
 }

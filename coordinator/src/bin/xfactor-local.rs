@@ -9,19 +9,24 @@ use anyhow::{Context, bail};
 use coordinator::local::{LocalJob, free_port};
 use trainer_core::cli::{Flags, init_logging};
 
-const USAGE: &str = "usage: xfactor-local [--dir DIR] [--workers N] [--stage1-steps N] [--stage2-steps N]";
+const USAGE: &str =
+    "usage: xfactor-local [--dir DIR] [--workers N] [--stage1-steps N] [--stage2-steps N]";
 
 fn main() -> anyhow::Result<()> {
     let args: Vec<String> = std::env::args().skip(1).collect();
-    let flags = Flags::parse(&args, &[], &["dir", "workers", "stage1-steps", "stage2-steps"])
-        .map_err(|e| anyhow::anyhow!("{e}\n{USAGE}"))?;
+    let flags = Flags::parse(
+        &args,
+        &[],
+        &["dir", "workers", "stage1-steps", "stage2-steps"],
+    )
+    .map_err(|e| anyhow::anyhow!("{e}\n{USAGE}"))?;
     init_logging(None).map_err(anyhow::Error::msg)?;
     let dir = PathBuf::from(flags.get("dir").unwrap_or("xfactor-local-run"));
     let mut job = LocalJob::new(&dir, free_port()?);
     let number = |name: &str, default: u64| -> anyhow::Result<u64> {
-        flags
-            .get(name)
-            .map_or(Ok(default), |v| v.parse().with_context(|| format!("--{name} `{v}`")))
+        flags.get(name).map_or(Ok(default), |v| {
+            v.parse().with_context(|| format!("--{name} `{v}`"))
+        })
     };
     job.workers = number("workers", 2)? as usize;
     job.stage1_steps = number("stage1-steps", job.stage1_steps)?;
@@ -54,10 +59,12 @@ fn main() -> anyhow::Result<()> {
         }
     }
     if !status.success() {
-        bail!("the coordinator failed ({status}); see {}/coordinator.log", dir.display());
+        bail!(
+            "the coordinator failed ({status}); see {}/coordinator.log",
+            dir.display()
+        );
     }
-    let report: serde_json::Value =
-        serde_json::from_slice(&std::fs::read(job.report_path())?)?;
+    let report: serde_json::Value = serde_json::from_slice(&std::fs::read(job.report_path())?)?;
     let steps = report["steps"].as_array().map_or(0, Vec::len);
     let last_loss = |stage: u64| {
         report["steps"]

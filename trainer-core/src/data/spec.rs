@@ -290,9 +290,11 @@ impl BatchSource for RankSource {
     fn samples(&self, step: u64, first_sample: u64, count: usize) -> Result<Samples, String> {
         match &self.inner {
             RankData::Generated(dataset) => dataset.samples(step, first_sample, count),
-            RankData::Stored(stored) => stored
-                .epoch_source(step / stored.epoch_steps)?
-                .samples(step, first_sample, count),
+            RankData::Stored(stored) => {
+                stored
+                    .epoch_source(step / stored.epoch_steps)?
+                    .samples(step, first_sample, count)
+            }
         }
     }
 }
