@@ -280,7 +280,7 @@ impl JobState {
         if let Some(member) = self.members.get_mut(&worker) {
             member.finished_step = Some((report.stage, report.step));
         }
-        let loss = report.loss.clone().unwrap_or_default();
+        let loss = report.loss.unwrap_or_default();
         self.current_step = report.step + 1;
         let index = self.report.steps.iter().position(|r| {
             r.stage == report.stage && r.step == report.step && r.generation == report.generation

@@ -64,6 +64,7 @@ pub fn init_logging(format: Option<&str>) -> Result<(), String> {
         .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info"));
     let builder = tracing_subscriber::fmt()
         .with_env_filter(filter)
+        .with_ansi(std::io::IsTerminal::is_terminal(&std::io::stderr()))
         .with_writer(std::io::stderr);
     let result = match format.unwrap_or("human") {
         "human" => builder.try_init(),
