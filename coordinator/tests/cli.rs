@@ -9,14 +9,20 @@ fn coordinator() -> Command {
     Command::new(env!("CARGO_BIN_EXE_xfactor-coordinator"))
 }
 
-#[test]
-fn dry_run_prints_ranks_shards_and_steps_and_reuses_the_manifest_cache() {
+/// A local job's data and YAML in a temporary folder (kept alive by the returned guard).
+fn prepared_job() -> (tempfile::TempDir, LocalJob) {
     let dir = tempfile::tempdir().unwrap();
     let job = LocalJob::new(dir.path(), free_port().unwrap());
     tokio::runtime::Runtime::new()
         .unwrap()
         .block_on(job.prepare())
         .unwrap();
+    (dir, job)
+}
+
+#[test]
+fn dry_run_prints_ranks_shards_and_steps_and_reuses_the_manifest_cache() {
+    let (_dir, job) = prepared_job();
     let run = || {
         coordinator()
             .args(["run", "--dry-run", "--config"])
@@ -51,12 +57,7 @@ fn dry_run_prints_ranks_shards_and_steps_and_reuses_the_manifest_cache() {
 
 #[test]
 fn a_bad_yaml_fails_before_anything_starts() {
-    let dir = tempfile::tempdir().unwrap();
-    let job = LocalJob::new(dir.path(), free_port().unwrap());
-    tokio::runtime::Runtime::new()
-        .unwrap()
-        .block_on(job.prepare())
-        .unwrap();
+    let (_dir, job) = prepared_job();
     let text = std::fs::read_to_string(job.config_path()).unwrap();
     std::fs::write(
         job.config_path(),

@@ -20,6 +20,14 @@ async fn serve() -> (String, std::sync::Arc<Mailbox>) {
     (address, mailbox)
 }
 
+async fn channel_to(address: &str) -> tonic::transport::Channel {
+    tonic::transport::Endpoint::from_shared(format!("http://{address}"))
+        .unwrap()
+        .connect()
+        .await
+        .unwrap()
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn three_ranks_sum_in_small_pipelined_chunks() {
     let mut servers = Vec::new();
@@ -118,12 +126,7 @@ async fn a_chunk_of_the_wrong_size_is_refused_by_name() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_stream_without_the_token_is_refused() {
     let (address, _) = serve().await;
-    let channel = tonic::transport::Endpoint::from_shared(format!("http://{address}"))
-        .unwrap()
-        .connect()
-        .await
-        .unwrap();
-    let mut client = CollectiveClient::new(channel);
+    let mut client = CollectiveClient::new(channel_to(&address).await);
     let refused = client
         .push(tokio_stream::iter(Vec::<Chunk>::new()))
         .await
