@@ -249,3 +249,41 @@ fn generated_scenes_write_an_re10k_tree_that_indexes_and_decodes() {
         .fold(0.0f32, |m, (a, b)| m.max((a - b).abs()));
     assert!(worst <= 1.0 / 255.0 + 1e-6, "PNG round trip off by {worst}");
 }
+
+#[test]
+fn manifest_caches_are_reused_until_the_listing_changes() {
+    use trainer_core::data::cache::{CacheError, CacheUse, load_or_index, read_cached};
+    let rt = runtime();
+    let root = DataRoot::in_memory("memory://cached");
+    rt.block_on(write_trees(&[(DatasetKind::Re10k, &root)]));
+    let (first, used) = rt
+        .block_on(load_or_index(&root, DatasetKind::Re10k))
+        .unwrap();
+    assert_eq!(used, CacheUse::Rebuilt);
+    let (again, used) = rt
+        .block_on(load_or_index(&root, DatasetKind::Re10k))
+        .unwrap();
+    assert_eq!(used, CacheUse::Reused);
+    assert_eq!(again, first);
+    let read = rt
+        .block_on(read_cached(&root, DatasetKind::Re10k, first.fingerprint))
+        .unwrap();
+    assert_eq!(read, first.manifest);
+    let sequence = &first.manifest.sequences[0];
+    let extra = sequence.frames[0].replace("000", "999");
+    rt.block_on(root.write(&extra, png(9))).unwrap();
+    let (changed, used) = rt
+        .block_on(load_or_index(&root, DatasetKind::Re10k))
+        .unwrap();
+    assert_eq!(used, CacheUse::Rebuilt, "a new frame makes the cache stale");
+    assert_ne!(changed.fingerprint, first.fingerprint);
+    assert_eq!(
+        changed.manifest.sequences[0].frames.len(),
+        sequence.frames.len() + 1
+    );
+    let stale = rt
+        .block_on(read_cached(&root, DatasetKind::Re10k, first.fingerprint))
+        .unwrap_err();
+    assert!(matches!(stale, CacheError::Stale { .. }), "{stale}");
+    assert!(stale.to_string().contains("memory://cached"), "{stale}");
+}
