@@ -317,8 +317,6 @@ pub struct StageConfig<O> {
     pub global_batch: u64,
     /// Samples per forward/backward pass on one worker.
     pub micro_batch: u64,
-    /// Weight of LPIPS in the loss.
-    pub lpips_weight: f64,
     /// LPIPS weights (safetensors from tools/convert_lpips_weights.py); needed when
     /// `lpips_weight` is positive.
     pub lpips_weights: Option<String>,
@@ -401,7 +399,6 @@ impl<'de, O: Deserialize<'de> + WithLpipsWeight> Deserialize<'de> for StageConfi
             steps: raw.steps.0,
             global_batch: raw.global_batch.0,
             micro_batch: raw.micro_batch.0,
-            lpips_weight: objective.lpips_weight(),
             lpips_weights: raw.lpips_weights.map(|p| p.0),
             schedule: raw.schedule.unwrap_or_else(|| fitted_schedule(raw.steps.0)),
             optimizer: raw.optimizer.unwrap_or_default(),
@@ -508,14 +505,14 @@ impl ClusterConfig {
                 "stage1",
                 self.stage1.global_batch,
                 self.stage1.micro_batch,
-                self.stage1.lpips_weight,
+                self.stage1.objective.lpips_weight(),
                 self.stage1.lpips_weights.is_some(),
             ),
             (
                 "stage2",
                 self.stage2.global_batch,
                 self.stage2.micro_batch,
-                self.stage2.lpips_weight,
+                self.stage2.objective.lpips_weight(),
                 self.stage2.lpips_weights.is_some(),
             ),
         ];

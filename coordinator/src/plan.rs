@@ -12,7 +12,7 @@ use trainer_core::data::store::DataRoot;
 use trainer_core::data::{DatasetKind, Manifest, Split};
 use trainer_core::trainer::{StageObjective, TrainConfig};
 
-use crate::config::{ClusterConfig, DataConfig};
+use crate::config::{ClusterConfig, DataConfig, StageConfig};
 
 /// Why a plan could not be made.
 #[derive(Debug, thiserror::Error)]
@@ -47,6 +47,38 @@ pub struct StagePlan {
     pub data: DataSpec,
     /// LPIPS weights file, when the objective uses LPIPS.
     pub lpips_weights: Option<String>,
+}
+
+/// Resolves stage `number` of `config` around its `objective`.
+fn stage_plan<O>(
+    config: &ClusterConfig,
+    number: u32,
+    stage: &StageConfig<O>,
+    objective: StageObjective,
+    source: &DataSource,
+    image_size: usize,
+) -> StagePlan {
+    StagePlan {
+        stage: number,
+        steps: stage.steps,
+        train: TrainConfig {
+            seed: config.seed,
+            objective,
+            global_batch: stage.global_batch as usize,
+            micro_batch: stage.micro_batch as usize,
+            shards: config.workers.threads as usize,
+            schedule: stage.schedule.clone(),
+            optimizer: stage.optimizer.clone(),
+        },
+        data: DataSpec {
+            source: source.clone(),
+            sampler: config.sampler(number),
+            image_size,
+            seed: config.seed,
+            global_batch: stage.global_batch as usize,
+        },
+        lpips_weights: stage.lpips_weights.clone(),
+    }
 }
 
 /// The whole job, resolved.
@@ -105,55 +137,22 @@ impl Plan {
                 DataSource::Stored(stored)
             }
         };
-        let stage = |number: u32,
-                     steps: u64,
-                     global_batch: u64,
-                     micro_batch: u64,
-                     objective: StageObjective,
-                     schedule,
-                     optimizer,
-                     lpips_weights: Option<String>| StagePlan {
-            stage: number,
-            steps,
-            train: TrainConfig {
-                seed: config.seed,
-                objective,
-                global_batch: global_batch as usize,
-                micro_batch: micro_batch as usize,
-                shards: config.workers.threads as usize,
-                schedule,
-                optimizer,
-            },
-            data: DataSpec {
-                source: source.clone(),
-                sampler: config.sampler(number),
-                image_size: model.image_size,
-                seed: config.seed,
-                global_batch: global_batch as usize,
-            },
-            lpips_weights,
-        };
-        let (s1, s2) = (&config.stage1, &config.stage2);
         let stages = [
-            stage(
+            stage_plan(
+                &config,
                 1,
-                s1.steps,
-                s1.global_batch,
-                s1.micro_batch,
-                StageObjective::Stage1(s1.objective.clone()),
-                s1.schedule.clone(),
-                s1.optimizer.clone(),
-                s1.lpips_weights.clone(),
+                &config.stage1,
+                StageObjective::Stage1(config.stage1.objective.clone()),
+                &source,
+                model.image_size,
             ),
-            stage(
+            stage_plan(
+                &config,
                 2,
-                s2.steps,
-                s2.global_batch,
-                s2.micro_batch,
-                StageObjective::Stage2(s2.objective.clone()),
-                s2.schedule.clone(),
-                s2.optimizer.clone(),
-                s2.lpips_weights.clone(),
+                &config.stage2,
+                StageObjective::Stage2(config.stage2.objective.clone()),
+                &source,
+                model.image_size,
             ),
         ];
         Ok(Self {
@@ -204,10 +203,7 @@ impl Plan {
                 stage.train.schedule.peak_lr,
                 stage.train.schedule.final_lr,
                 stage.train.schedule.warmup_steps,
-                match &stage.train.objective {
-                    StageObjective::Stage1(o) => o.lpips_weight,
-                    StageObjective::Stage2(o) => o.lpips_weight,
-                },
+                stage.train.objective.lpips_weight(),
                 stage.data.sampler.frames,
             );
             for rank in 0..world {

@@ -14,13 +14,11 @@ use tokio::sync::{Mutex, Notify};
 use tonic::service::interceptor::InterceptedService;
 use tonic::{Request, Response, Status};
 use tracing::Instrument;
+use trainer_core::XFactorConfig;
 use trainer_core::data::store::DataRoot;
 
 use crate::job::{Commit, Durable, JobState, Report, Timing};
 use crate::plan::Plan;
-
-/// Version of the model-config schema this build understands (bumped with `XFactorConfig`).
-pub const MODEL_CONFIG_VERSION: u32 = 1;
 
 /// Name of the job-state object under the checkpoint URI.
 const DURABLE_OBJECT: &str = "job.json";
@@ -268,10 +266,11 @@ impl CoordinatorService {
                 proto::PROTOCOL_VERSION
             )));
         }
-        if request.model_config_version != MODEL_CONFIG_VERSION {
+        if request.model_config_version != XFactorConfig::SCHEMA_VERSION {
             return Err(Status::failed_precondition(format!(
-                "model-config version {} refused: this coordinator uses version {MODEL_CONFIG_VERSION}",
-                request.model_config_version
+                "model-config version {} refused: this coordinator uses version {}",
+                request.model_config_version,
+                XFactorConfig::SCHEMA_VERSION
             )));
         }
         let mut state = self.state.lock().await;

@@ -6,7 +6,7 @@ use std::time::Duration;
 use coordinator::config::ClusterConfig;
 use coordinator::local::free_port;
 use coordinator::plan::Plan;
-use coordinator::service::{CoordinatorService, MODEL_CONFIG_VERSION};
+use coordinator::service::CoordinatorService;
 use proto::v1::coordinator_client::CoordinatorClient;
 use proto::v1::{RegisterRequest, StatusRequest};
 use tokio::sync::oneshot;
@@ -31,7 +31,7 @@ checkpoint: {{uri: {checkpoints}, every: 1}}
 fn request(protocol: u32, model: &str) -> RegisterRequest {
     RegisterRequest {
         protocol_version: protocol,
-        model_config_version: MODEL_CONFIG_VERSION,
+        model_config_version: trainer_core::XFactorConfig::SCHEMA_VERSION,
         worker_name: "test".into(),
         collective_address: "127.0.0.1:1".into(),
         device: "cpu".into(),

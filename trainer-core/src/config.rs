@@ -61,6 +61,10 @@ pub enum ConfigError {
 }
 
 impl XFactorConfig {
+    /// Version of this struct's serialised form. Processes that exchange configurations (the
+    /// coordinator and its workers) refuse each other when it differs.
+    pub const SCHEMA_VERSION: u32 = 1;
+
     /// The paper's configuration: width 1024, 16 heads, patch 16, 8 + 8 layers, `Cp = 256`,
     /// 256x256 images, `G = 32`.
     pub fn paper() -> Self {

@@ -49,7 +49,8 @@ pub enum StageObjective {
 }
 
 impl StageObjective {
-    fn lpips_weight(&self) -> f64 {
+    /// Weight of LPIPS in the loss.
+    pub fn lpips_weight(&self) -> f64 {
         match self {
             Self::Stage1(config) => config.lpips_weight,
             Self::Stage2(config) => config.lpips_weight,

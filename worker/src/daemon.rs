@@ -28,9 +28,6 @@ use trainer_core::{XFactor, XFactorConfig};
 use crate::checkpoints;
 use crate::collective::{CollectiveService, Ring, spawn_server};
 
-/// Version of the model-config schema this build understands (must equal the coordinator's).
-pub const MODEL_CONFIG_VERSION: u32 = 1;
-
 /// Consecutive generations that may fail before the worker gives up.
 const MAX_CONSECUTIVE_FAILURES: u32 = 8;
 
@@ -184,7 +181,7 @@ async fn register(
     let reply = client
         .register(RegisterRequest {
             protocol_version: proto::PROTOCOL_VERSION,
-            model_config_version: MODEL_CONFIG_VERSION,
+            model_config_version: XFactorConfig::SCHEMA_VERSION,
             worker_name: options.name.clone(),
             collective_address: address.to_string(),
             device: options.device.clone().unwrap_or_else(|| "job".into()),

@@ -20,6 +20,26 @@ async fn serve() -> (String, std::sync::Arc<Mailbox>) {
     (address, mailbox)
 }
 
+async fn join(
+    mailbox: &Mailbox,
+    rank: usize,
+    peers: &[String],
+    generation: u64,
+    cancelled: watch::Receiver<bool>,
+) -> Ring {
+    Ring::connect(
+        mailbox,
+        rank,
+        peers,
+        generation,
+        TOKEN,
+        cancelled,
+        Duration::from_secs(10),
+    )
+    .await
+    .unwrap()
+}
+
 async fn channel_to(address: &str) -> tonic::transport::Channel {
     tonic::transport::Endpoint::from_shared(format!("http://{address}"))
         .unwrap()
@@ -42,17 +62,7 @@ async fn three_ranks_sum_in_small_pipelined_chunks() {
         let peers = peers.clone();
         let cancelled = cancelled.clone();
         tasks.push(tokio::spawn(async move {
-            let mut ring = Ring::connect(
-                &mailbox,
-                rank,
-                &peers,
-                7,
-                TOKEN,
-                cancelled,
-                Duration::from_secs(10),
-            )
-            .await
-            .unwrap();
+            let mut ring = join(&mailbox, rank, &peers, 7, cancelled).await;
             ring.set_chunk_values(37);
             let mut values: Vec<f32> = (0..len).map(|i| (i * (rank + 1)) as f32).collect();
             for divisor in [6.0, 3.0] {
@@ -80,17 +90,7 @@ async fn a_chunk_of_the_wrong_size_is_refused_by_name() {
     let peers = vec![address_0.clone(), address_1];
     let (_cancel, cancelled) = watch::channel(false);
     let honest = tokio::spawn(async move {
-        let mut ring = Ring::connect(
-            &mailbox_0,
-            0,
-            &peers,
-            3,
-            TOKEN,
-            cancelled,
-            Duration::from_secs(10),
-        )
-        .await
-        .unwrap();
+        let mut ring = join(&mailbox_0, 0, &peers, 3, cancelled).await;
         let mut values = vec![1.0f32; 100];
         let result = ring.all_reduce(&mut values).await;
         (result, values)
