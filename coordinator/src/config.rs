@@ -182,6 +182,25 @@ pub struct ClusterConfig {
     /// How many workers and how they behave.
     #[serde(default)]
     pub workers: WorkersConfig,
+    /// Serve gRPC over TLS with this certificate; workers then dial `https://` with
+    /// `--tls-ca`. Absent: plain HTTP/2 (fine on a trusted network or loopback).
+    #[serde(default)]
+    pub tls: Option<TlsConfig>,
+    /// `host:port` of the coordinator's Prometheus `/metrics` endpoint (the command line's
+    /// `--metrics-address` wins). Absent: no endpoint.
+    #[serde(default)]
+    pub metrics_listen: Option<NonEmpty>,
+}
+
+/// PEM files of the coordinator's TLS identity. They are read when the job starts, so a
+/// `--dry-run` on a machine without them still checks the rest of the file.
+#[derive(Debug, Clone, PartialEq, Deserialize, Serialize)]
+#[serde(deny_unknown_fields)]
+pub struct TlsConfig {
+    /// Certificate chain (PEM), leaf first.
+    pub cert: NonEmpty,
+    /// Private key (PEM, PKCS#8, SEC1 or PKCS#1).
+    pub key: NonEmpty,
 }
 
 fn default_listen() -> NonEmpty {

@@ -10,6 +10,7 @@ use std::time::{Duration, Instant};
 
 use proto::v1::{Assignment, JobStatus, assignment::Action};
 use serde::Serialize;
+use telemetry::curves::Curve;
 
 use crate::plan::Plan;
 
@@ -22,6 +23,7 @@ struct Member {
     lost: bool,
     waiting_after: Option<u64>,
     finished_step: Option<(u32, u64)>,
+    samples_per_s: f64,
 }
 
 /// The running group.
@@ -125,6 +127,8 @@ pub struct JobState {
     plan: Plan,
     timing: Timing,
     members: BTreeMap<u64, Member>,
+    /// The generation number before this coordinator formed its first group.
+    first_generation: u64,
     next_worker: u64,
     generation: u64,
     group: Option<Group>,
@@ -137,9 +141,21 @@ pub struct JobState {
     last_loss: f32,
 }
 
+/// Where this coordinator's worker ids and generation numbers start: the start time in
+/// seconds times a million. A restarted coordinator thus never hands out an id or a generation
+/// that workers of its predecessor still hold, so a stale heartbeat cannot pass for a new
+/// member and a stale collective inbox cannot be mistaken for a new generation's.
+fn incarnation_base() -> u64 {
+    let seconds = std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_secs());
+    seconds * 1_000_000
+}
+
 impl JobState {
     /// A job at its start, or where `durable` (read back after a coordinator restart) left it.
     pub fn new(plan: Plan, timing: Timing, durable: Option<Durable>) -> Self {
+        let base = incarnation_base();
         let job = plan.config.job.0.clone();
         let durable = durable.unwrap_or(Durable {
             job: job.clone(),
@@ -151,8 +167,9 @@ impl JobState {
             plan,
             timing,
             members: BTreeMap::new(),
-            next_worker: 1,
-            generation: 0,
+            next_worker: base + 1,
+            generation: base,
+            first_generation: base,
             group: None,
             assignments: BTreeMap::new(),
             first_registration: None,
@@ -209,6 +226,7 @@ impl JobState {
                 lost: false,
                 waiting_after: None,
                 finished_step: None,
+                samples_per_s: 0.0,
             },
         );
         id
@@ -279,6 +297,7 @@ impl JobState {
         };
         if let Some(member) = self.members.get_mut(&worker) {
             member.finished_step = Some((report.stage, report.step));
+            member.samples_per_s = report.samples_per_s;
         }
         let loss = report.loss.unwrap_or_default();
         self.current_step = report.step + 1;
@@ -422,7 +441,7 @@ impl JobState {
             .copied()
             .filter(|id| self.members[id].waiting_after.is_some())
             .collect();
-        let ready = if self.generation == 0 {
+        let ready = if self.generation == self.first_generation {
             waiting.len() >= expected
                 || (waiting.len() >= minimum
                     && self
@@ -547,6 +566,66 @@ impl JobState {
                 .unwrap_or_default(),
             last_loss: self.last_loss,
             restarts: self.report.restarts,
+            job_steps_done: match stage {
+                1 => self.current_step,
+                2 => self.plan.stage(1).steps + self.current_step,
+                _ => self.plan.stage(1).steps + self.plan.stage(2).steps,
+            },
+            job_steps_total: self.plan.stage(1).steps + self.plan.stage(2).steps,
+        }
+    }
+
+    /// Samples per second of the running group: its members' last reports summed.
+    pub fn group_throughput(&self) -> f64 {
+        self.group.as_ref().map_or(0.0, |group| {
+            group
+                .members
+                .iter()
+                .filter_map(|m| self.members.get(m))
+                .map(|m| m.samples_per_s)
+                .sum()
+        })
+    }
+
+    /// Whether `worker` is rank 0 of the running group (its reports carry the job's loss).
+    pub fn is_rank0(&self, worker: u64) -> bool {
+        self.group
+            .as_ref()
+            .is_some_and(|g| g.members.first() == Some(&worker))
+    }
+
+    /// Checksum disagreements so far.
+    pub fn mismatches(&self) -> usize {
+        self.report.checksum_mismatches.len()
+    }
+
+    /// A worker said it is leaving (it shuts down between steps): it is treated as lost at
+    /// once, so its group re-forms without waiting for its heartbeats to time out. Returns
+    /// whether the worker was known.
+    pub fn leave(&mut self, worker: u64, reason: &str) -> bool {
+        match self.members.get_mut(&worker) {
+            Some(member) if !member.lost => {
+                member.lost = true;
+                tracing::warn!(worker, name = %member.name, %reason, "worker left");
+                true
+            }
+            _ => false,
+        }
+    }
+
+    /// The loss curve of `stage` as recorded by this coordinator: one row per step (the last
+    /// run of a step that was re-run after a restart), with loss and learning rate.
+    pub fn curve(&self, stage: u32) -> Curve {
+        let mut rows: BTreeMap<u64, Vec<f64>> = BTreeMap::new();
+        for record in self.report.steps.iter().filter(|r| r.stage == stage) {
+            rows.insert(
+                record.step,
+                vec![f64::from(record.loss), record.learning_rate],
+            );
+        }
+        Curve {
+            columns: vec!["loss".into(), "learning_rate".into()],
+            rows: rows.into_iter().collect(),
         }
     }
 }

@@ -7,5 +7,7 @@
 pub mod config;
 pub mod job;
 pub mod local;
+pub mod metrics;
 pub mod plan;
+pub mod progress;
 pub mod service;

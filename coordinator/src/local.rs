@@ -44,6 +44,10 @@ pub struct LocalJob {
     pub seed: u64,
     /// Use in-memory generated scenes instead of a stored dataset.
     pub in_memory: bool,
+    /// Port of the coordinator's `/metrics` endpoint; `None`: no endpoint.
+    pub coordinator_metrics_port: Option<u16>,
+    /// Ports of the workers' `/metrics` endpoints, by worker index; missing: no endpoint.
+    pub worker_metrics_ports: Vec<u16>,
 }
 
 impl LocalJob {
@@ -66,6 +70,8 @@ impl LocalJob {
             port,
             seed: 7,
             in_memory: false,
+            coordinator_metrics_port: None,
+            worker_metrics_ports: Vec::new(),
         }
     }
 
@@ -161,24 +167,38 @@ impl LocalJob {
         yaml
     }
 
-    /// Starts the coordinator process (its log goes to `coordinator.log`).
+    /// Starts the coordinator process (its log is appended to `coordinator.log`, so a
+    /// restarted coordinator's log follows the first one's).
     pub fn spawn_coordinator(&self, binaries: &Path) -> anyhow::Result<Child> {
-        let log = std::fs::File::create(self.dir.join("coordinator.log"))?;
-        Ok(Command::new(binaries.join("xfactor-coordinator"))
+        let log = std::fs::OpenOptions::new()
+            .create(true)
+            .append(true)
+            .open(self.dir.join("coordinator.log"))?;
+        let mut command = Command::new(binaries.join("xfactor-coordinator"));
+        command
             .arg("run")
             .arg("--config")
             .arg(self.config_path())
             .arg("--report")
-            .arg(self.report_path())
-            .stdout(Stdio::null())
-            .stderr(log)
-            .spawn()?)
+            .arg(self.report_path());
+        if let Some(port) = self.coordinator_metrics_port {
+            command
+                .arg("--metrics-address")
+                .arg(format!("127.0.0.1:{port}"));
+        }
+        Ok(command.stdout(Stdio::null()).stderr(log).spawn()?)
     }
 
     /// Starts worker process number `index` (its log goes to `worker-<index>.log`).
     pub fn spawn_worker(&self, binaries: &Path, index: usize) -> anyhow::Result<Child> {
         let log = std::fs::File::create(self.dir.join(format!("worker-{index}.log")))?;
-        Ok(Command::new(binaries.join("xfactor-worker"))
+        let mut command = Command::new(binaries.join("xfactor-worker"));
+        if let Some(port) = self.worker_metrics_ports.get(index) {
+            command
+                .arg("--metrics-address")
+                .arg(format!("127.0.0.1:{port}"));
+        }
+        Ok(command
             .arg("--coordinator")
             .arg(format!("http://127.0.0.1:{}", self.port))
             .arg("--token")

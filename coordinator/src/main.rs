@@ -11,8 +11,10 @@ use proto::v1::coordinator_client::CoordinatorClient;
 use trainer_core::cli::{Flags, init_logging};
 
 const USAGE: &str = "usage:
-  xfactor-coordinator run --config CLUSTER.yaml [--dry-run] [--report REPORT.json] [--log-format human|json]
-  xfactor-coordinator status --address http://HOST:PORT (--token TOKEN | --token-env VAR)";
+  xfactor-coordinator run --config CLUSTER.yaml [--dry-run] [--report REPORT.json]
+                          [--metrics-address HOST:PORT] [--log-format human|json]
+  xfactor-coordinator status --address http(s)://HOST:PORT (--token TOKEN | --token-env VAR)
+                             [--tls-ca CA.pem] [--tls-domain NAME]";
 
 fn main() -> anyhow::Result<()> {
     let args: Vec<String> = std::env::args().skip(1).collect();
@@ -25,14 +27,22 @@ fn main() -> anyhow::Result<()> {
         .build()?;
     match command.as_str() {
         "run" => {
-            let flags = Flags::parse(rest, &["dry-run"], &["config", "report", "log-format"])
-                .map_err(|e| anyhow::anyhow!("{e}\n{USAGE}"))?;
+            let flags = Flags::parse(
+                rest,
+                &["dry-run"],
+                &["config", "report", "log-format", "metrics-address"],
+            )
+            .map_err(|e| anyhow::anyhow!("{e}\n{USAGE}"))?;
             init_logging(flags.get("log-format")).map_err(anyhow::Error::msg)?;
             runtime.block_on(run(&flags))
         }
         "status" => {
-            let flags = Flags::parse(rest, &[], &["address", "token", "token-env"])
-                .map_err(|e| anyhow::anyhow!("{e}\n{USAGE}"))?;
+            let flags = Flags::parse(
+                rest,
+                &[],
+                &["address", "token", "token-env", "tls-ca", "tls-domain"],
+            )
+            .map_err(|e| anyhow::anyhow!("{e}\n{USAGE}"))?;
             runtime.block_on(status(&flags))
         }
         other => bail!("unknown command `{other}`\n{USAGE}"),
@@ -48,7 +58,14 @@ async fn run(flags: &Flags) -> anyhow::Result<()> {
         print!("{}", plan.describe());
         return Ok(());
     }
+    let metrics_address = flags
+        .get("metrics-address")
+        .map(str::to_string)
+        .or_else(|| plan.config.metrics_listen.as_ref().map(|a| a.0.clone()));
     let service = CoordinatorService::new(plan).await?;
+    if let Some(address) = metrics_address {
+        telemetry::http::serve(&address, service.metrics()).await?;
+    }
     let shutdown = async {
         let mut terminate =
             match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
@@ -82,20 +99,31 @@ async fn status(flags: &Flags) -> anyhow::Result<()> {
         (None, Some(var)) => std::env::var(var).with_context(|| format!("{var} is not set"))?,
         (None, None) => bail!("give --token or --token-env"),
     };
-    let channel = tonic::transport::Endpoint::from_shared(address.to_string())?
+    let mut endpoint = tonic::transport::Endpoint::from_shared(address.to_string())
+        .with_context(|| format!("`{address}` is not a URL"))?;
+    if let Some(ca) = flags.get("tls-ca") {
+        let domain = match flags.get("tls-domain") {
+            Some(domain) => domain.to_string(),
+            None => endpoint.uri().host().unwrap_or("localhost").to_string(),
+        };
+        endpoint = endpoint.tls_config(proto::tls::client_config(Path::new(ca), &domain)?)?;
+    }
+    let channel = endpoint
         .connect()
         .await
         .with_context(|| format!("cannot reach the coordinator at {address}"))?;
     let mut client = CoordinatorClient::with_interceptor(channel, proto::AttachToken::new(&token)?);
     let status = client.status(StatusRequest {}).await?.into_inner();
     println!(
-        "job={} phase={} generation={} workers={} step={}/{} last_loss={} restarts={} last_commit={}",
+        "job={} phase={} generation={} workers={} step={}/{} job_steps={}/{} last_loss={} restarts={} last_commit={}",
         status.job_name,
         status.phase,
         status.generation,
         status.workers,
         status.step,
         status.total_steps,
+        status.job_steps_done,
+        status.job_steps_total,
         status.last_loss,
         status.restarts,
         if status.last_commit.is_empty() {

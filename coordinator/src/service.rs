@@ -1,14 +1,15 @@
 //! The Coordinator gRPC service over the job state, and the loop that runs a job to its end.
 
 use std::net::SocketAddr;
+use std::path::Path;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use proto::v1::coordinator_server::{Coordinator, CoordinatorServer};
 use proto::v1::{
     Assignment, AwaitAssignmentRequest, CheckpointCommit, CommitAck, HeartbeatReply,
-    HeartbeatRequest, JobStatus, RegisterReply, RegisterRequest, StatusRequest, StepAck,
-    StepReport,
+    HeartbeatRequest, JobStatus, LeaveReply, LeaveRequest, RegisterReply, RegisterRequest,
+    StatusRequest, StepAck, StepReport,
 };
 use tokio::sync::{Mutex, Notify};
 use tonic::service::interceptor::InterceptedService;
@@ -17,7 +18,10 @@ use tracing::Instrument;
 use trainer_core::XFactorConfig;
 use trainer_core::data::store::DataRoot;
 
+use telemetry::Registry;
+
 use crate::job::{Commit, Durable, JobState, Report, Timing};
+use crate::metrics;
 use crate::plan::Plan;
 
 /// Name of the job-state object under the checkpoint URI.
@@ -30,6 +34,7 @@ pub struct CoordinatorService {
     changed: Arc<Notify>,
     checkpoints: DataRoot,
     heartbeat_interval_s: f64,
+    metrics: Arc<Registry>,
 }
 
 /// Why a job could not run.
@@ -44,6 +49,9 @@ pub enum ServeError {
     /// The server failed.
     #[error("gRPC server: {0}")]
     Transport(String),
+    /// The TLS files in the YAML could not be used.
+    #[error("tls: {0}")]
+    Tls(String),
 }
 
 impl CoordinatorService {
@@ -86,7 +94,48 @@ impl CoordinatorService {
             changed: Arc::new(Notify::new()),
             checkpoints,
             heartbeat_interval_s,
+            metrics: Arc::new(Registry::new()),
         })
+    }
+
+    /// The series this service publishes, for the `/metrics` endpoint.
+    pub fn metrics(&self) -> Arc<Registry> {
+        Arc::clone(&self.metrics)
+    }
+
+    fn publish(&self, state: &JobState) {
+        metrics::record_status(
+            &self.metrics,
+            &state.status(),
+            state.durable().stage,
+            state.group_throughput(),
+            state.mismatches(),
+        );
+    }
+
+    /// Writes `curves/stage{stage}.csv` and `.png` under the checkpoint URI. A failure is
+    /// logged, not fatal: the curves are a convenience, the report holds every step.
+    async fn write_curves(&self, stage: u32) {
+        let curve = self.state.lock().await.curve(stage);
+        let csv = format!("curves/stage{stage}.csv");
+        let png = format!("curves/stage{stage}.png");
+        let written = async {
+            self.checkpoints
+                .write(&csv, curve.to_csv().into_bytes())
+                .await
+                .map_err(|e| e.to_string())?;
+            let image = curve.to_png().map_err(|e| e.to_string())?;
+            self.checkpoints
+                .write(&png, image)
+                .await
+                .map_err(|e| e.to_string())
+        };
+        match written.await {
+            Ok(()) => {
+                tracing::info!(stage, steps = curve.rows.len(), uri = %self.checkpoints.uri(), "loss curves written under curves/")
+            }
+            Err(error) => tracing::warn!(stage, %error, "loss curves not written"),
+        }
     }
 
     /// Runs the job: serves RPCs, ticks the state machine, and returns the report once both
@@ -108,10 +157,19 @@ impl CoordinatorService {
                 .max_encoding_message_size(proto::MAX_MESSAGE_BYTES),
             proto::RequireToken::new(token),
         );
+        let tls = self.state.lock().await.plan().config.tls.clone();
+        let mut builder = tonic::transport::Server::builder();
+        if let Some(tls) = tls {
+            let settings = proto::tls::server_config(Path::new(&tls.cert.0), Path::new(&tls.key.0))
+                .map_err(|e| ServeError::Tls(e.to_string()))?;
+            builder = builder
+                .tls_config(settings)
+                .map_err(|e| ServeError::Tls(e.to_string()))?;
+        }
         let finished = Arc::new(Notify::new());
         let stop_server = finished.clone();
         let serve = tokio::spawn(
-            tonic::transport::Server::builder()
+            builder
                 .add_service(server)
                 .serve_with_shutdown(address, async move { stop_server.notified().await }),
         );
@@ -119,15 +177,22 @@ impl CoordinatorService {
         let ticker = {
             let service = self.clone();
             async move {
+                let mut stage = service.state.lock().await.durable().stage;
                 loop {
                     tokio::time::sleep(Duration::from_millis(50)).await;
-                    let (changed, done) = {
+                    let (changed, done, now_stage) = {
                         let mut state = service.state.lock().await;
-                        (state.tick(Instant::now()), state.finished())
+                        let changed = state.tick(Instant::now());
+                        service.publish(&state);
+                        (changed, state.finished(), state.durable().stage)
                     };
                     if changed {
                         service.changed.notify_waiters();
                     }
+                    for finished_stage in stage..now_stage.min(3) {
+                        service.write_curves(finished_stage).await;
+                    }
+                    stage = stage.max(now_stage);
                     if done {
                         // Let every worker collect its FINISH before the server goes.
                         tokio::time::sleep(Duration::from_secs_f64(
@@ -217,6 +282,7 @@ impl Coordinator for CoordinatorService {
             request.generation,
             Instant::now(),
         );
+        self.metrics.add(&metrics::HEARTBEATS, &[], 1.0);
         Ok(Response::new(HeartbeatReply {
             generation_current,
             known,
@@ -234,6 +300,10 @@ impl Coordinator for CoordinatorService {
             let mut state = self.state.lock().await;
             state.heartbeat(report.worker_id, report.generation, Instant::now());
             let generation_current = state.report_step(report.worker_id, &report);
+            if generation_current {
+                let rank0 = state.is_rank0(report.worker_id);
+                metrics::record_step(&self.metrics, &report, rank0);
+            }
             Ok(Response::new(StepAck { generation_current }))
         }
         .instrument(span)
@@ -254,6 +324,31 @@ impl Coordinator for CoordinatorService {
         _request: Request<StatusRequest>,
     ) -> Result<Response<JobStatus>, Status> {
         Ok(Response::new(self.state.lock().await.status()))
+    }
+
+    async fn leave(&self, request: Request<LeaveRequest>) -> Result<Response<LeaveReply>, Status> {
+        let request = request.into_inner();
+        let span = tracing::info_span!("rpc_leave", worker = request.worker_id);
+        async {
+            let known = {
+                let mut state = self.state.lock().await;
+                let known = state.leave(request.worker_id, &request.reason);
+                if known && state.tick(Instant::now()) {
+                    self.changed.notify_waiters();
+                }
+                known
+            };
+            if known {
+                Ok(Response::new(LeaveReply {}))
+            } else {
+                Err(Status::not_found(format!(
+                    "worker {} is not a member of this job",
+                    request.worker_id
+                )))
+            }
+        }
+        .instrument(span)
+        .await
     }
 }
 
@@ -357,6 +452,7 @@ impl CoordinatorService {
             if let Err(reason) = accepted {
                 return refused(reason);
             }
+            self.metrics.add(&metrics::COMMITS, &[], 1.0);
             state.durable().clone()
         };
         let json =

@@ -256,3 +256,199 @@ fn a_killed_worker_of_two_does_not_stop_the_job() {
 fn a_killed_worker_of_three_does_not_stop_the_job() {
     kill_one_mid_stage(3, 2);
 }
+
+/// Every `name{labels} value` line of a Prometheus text page.
+fn scrape(port: u16) -> Option<Vec<(String, f64)>> {
+    let runtime = tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .ok()?;
+    let address = std::net::SocketAddr::from(([127, 0, 0, 1], port));
+    let (status, body) = runtime
+        .block_on(telemetry::http::get(address, "/metrics"))
+        .ok()?;
+    (status == 200).then(|| {
+        body.lines()
+            .filter(|l| !l.starts_with('#'))
+            .filter_map(|l| l.rsplit_once(' '))
+            .filter_map(|(series, value)| Some((series.to_string(), value.parse().ok()?)))
+            .collect()
+    })
+}
+
+/// The value of the first series of family `name`.
+fn sample(page: &[(String, f64)], name: &str) -> Option<f64> {
+    page.iter()
+        .find(|(series, _)| series == name || series.starts_with(&format!("{name}{{")))
+        .map(|(_, value)| *value)
+}
+
+#[test]
+fn metrics_are_scraped_from_the_coordinator_and_both_workers_mid_run() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut job = small_job(dir.path(), 2);
+    job.stage1_steps = 12;
+    job.coordinator_metrics_port = Some(free_port().unwrap());
+    job.worker_metrics_ports = vec![free_port().unwrap(), free_port().unwrap()];
+    let ports: Vec<u16> = std::iter::once(job.coordinator_metrics_port.unwrap())
+        .chain(job.worker_metrics_ports.iter().copied())
+        .collect();
+    let running = Running::start(job);
+    let deadline = Instant::now() + Duration::from_secs(120);
+    let mut pages: Vec<Option<Vec<(String, f64)>>> = vec![None; 3];
+    while pages.iter().any(Option::is_none) {
+        assert!(
+            Instant::now() < deadline,
+            "no page with a finished step from every process\n{}",
+            running.logs()
+        );
+        for (page, port) in pages.iter_mut().zip(&ports) {
+            if page.is_none()
+                && let Some(scraped) = scrape(*port)
+                && sample(&scraped, "xfactor_step").is_some_and(|s| s >= 1.0)
+                && sample(&scraped, "xfactor_heartbeats_total").is_some_and(|h| h >= 1.0)
+            {
+                *page = Some(scraped);
+            }
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    let pages: Vec<Vec<(String, f64)>> = pages.into_iter().flatten().collect();
+    let coordinator = &pages[0];
+    let value = |page: &[(String, f64)], name: &str| {
+        sample(page, name).unwrap_or_else(|| panic!("{name} missing from {page:?}"))
+    };
+    assert_eq!(value(coordinator, "xfactor_workers"), 2.0);
+    assert_eq!(value(coordinator, "xfactor_stage"), 1.0);
+    assert_eq!(value(coordinator, "xfactor_stage_steps"), 12.0);
+    assert_eq!(value(coordinator, "xfactor_restarts_total"), 0.0);
+    assert!(value(coordinator, "xfactor_loss") > 0.0);
+    assert!(value(coordinator, "xfactor_learning_rate") > 0.0);
+    assert!(value(coordinator, "xfactor_samples_per_second") > 0.0);
+    assert!(value(coordinator, "xfactor_worker_allreduce_seconds") > 0.0);
+    for worker in &pages[1..] {
+        let loss = value(worker, "xfactor_loss");
+        assert!(loss.is_finite() && loss > 0.0, "loss {loss}");
+        assert!(value(worker, "xfactor_learning_rate") > 0.0);
+        assert!(value(worker, "xfactor_samples_per_second") > 0.0);
+        assert!(value(worker, "xfactor_allreduce_seconds") > 0.0);
+        assert!(value(worker, "xfactor_allreduce_bytes_per_second") > 1e5);
+        assert!(value(worker, "xfactor_loader_queue_depth") >= 0.0);
+        assert_eq!(value(worker, "xfactor_skipped_frames_total"), 0.0);
+        assert_eq!(
+            value(worker, "xfactor_generation"),
+            value(coordinator, "xfactor_generation")
+        );
+    }
+    let report = running.finish(Duration::from_secs(120));
+    assert_eq!(report["outcome"], "finished", "{report:#}");
+    let curves = dir.path().join("checkpoints/curves");
+    for stage in [1, 2] {
+        let csv = std::fs::read_to_string(curves.join(format!("stage{stage}.csv"))).unwrap();
+        let steps = if stage == 1 { 12 } else { 3 };
+        assert_eq!(csv.lines().count(), steps + 1, "{csv}");
+        assert!(csv.starts_with("step,loss,learning_rate\n"));
+        let png = image::open(curves.join(format!("stage{stage}.png"))).unwrap();
+        assert!(png.width() > 100 && png.height() > 100);
+    }
+}
+
+fn signal(child: &Child, name: &str) {
+    let status = std::process::Command::new("kill")
+        .args([&format!("-{name}"), &child.id().to_string()])
+        .status()
+        .unwrap();
+    assert!(status.success(), "kill -{name} failed");
+}
+
+fn wait_exit(child: &mut Child, limit: Duration) -> std::process::ExitStatus {
+    let deadline = Instant::now() + limit;
+    loop {
+        if let Some(status) = child.try_wait().unwrap() {
+            return status;
+        }
+        assert!(
+            Instant::now() < deadline,
+            "process did not exit in {limit:?}"
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}
+
+fn wait_for_first_commit(running: &Running) {
+    let marker = running.job.checkpoint_dir().join("job.json");
+    let deadline = Instant::now() + Duration::from_secs(240);
+    while !marker.exists() {
+        assert!(Instant::now() < deadline, "no commit\n{}", running.logs());
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}
+
+fn last_committed(checkpoints: &Path) -> String {
+    let durable: Value =
+        serde_json::from_slice(&std::fs::read(checkpoints.join("job.json")).unwrap()).unwrap();
+    durable["last_commit"]["location"]
+        .as_str()
+        .unwrap_or_else(|| panic!("no last commit in {durable}"))
+        .to_string()
+}
+
+#[test]
+fn sigterm_to_a_worker_leaves_cleanly_and_the_job_finishes() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut job = small_job(dir.path(), 2);
+    job.stage1_steps = 10;
+    let mut running = Running::start(job);
+    wait_for_first_commit(&running);
+    signal(&running.workers[1], "TERM");
+    let status = wait_exit(&mut running.workers[1], Duration::from_secs(60));
+    assert!(
+        status.success(),
+        "the worker failed on SIGTERM: {status}\n{}",
+        running.logs()
+    );
+    let log = std::fs::read_to_string(dir.path().join("worker-1.log")).unwrap();
+    assert!(log.contains("left the job"), "{log}");
+    load_weights(&last_committed(&running.job.checkpoint_dir()));
+    let report = running.finish(Duration::from_secs(300));
+    assert_eq!(report["outcome"], "finished", "{report:#}");
+    assert!(report["restarts"].as_u64().unwrap() >= 1, "{report:#}");
+    for stage in [1, 2] {
+        load_weights(&commits(&report, stage).last().unwrap().1);
+    }
+}
+
+#[test]
+fn a_coordinator_stopped_by_sigterm_and_restarted_resumes_and_finishes() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut job = small_job(dir.path(), 2);
+    job.stage1_steps = 10;
+    let mut running = Running::start(job);
+    wait_for_first_commit(&running);
+    signal(&running.coordinator, "TERM");
+    let status = wait_exit(&mut running.coordinator, Duration::from_secs(30));
+    assert!(
+        status.success(),
+        "coordinator failed on SIGTERM: {status}\n{}",
+        running.logs()
+    );
+    let stopped: Value =
+        serde_json::from_slice(&std::fs::read(running.job.report_path()).unwrap()).unwrap();
+    assert!(
+        stopped["outcome"].as_str().unwrap().starts_with("stopped"),
+        "{stopped:#}"
+    );
+    let resume_point = last_committed(&running.job.checkpoint_dir());
+    load_weights(&resume_point);
+    running.coordinator = running.job.spawn_coordinator(&binaries()).unwrap();
+    let report = running.finish(Duration::from_secs(300));
+    assert_eq!(report["outcome"], "finished", "{report:#}");
+    let first = &report["generations"][0];
+    assert!(
+        first["stage"] == 2 || first["resume_from"] != "",
+        "the restarted coordinator began stage 1 afresh: {report:#}"
+    );
+    let final_stage2 = commits(&report, 2);
+    assert_eq!(final_stage2.last().unwrap().0, 3, "{report:#}");
+    load_weights(&final_stage2.last().unwrap().1);
+}

@@ -124,3 +124,84 @@ async fn refusals_name_their_reason() {
     stop.send(()).unwrap();
     server.await.unwrap().unwrap();
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn tls_round_trip_with_a_test_certificate() {
+    let dir = tempfile::tempdir().unwrap();
+    let port = free_port().unwrap();
+    let certificates =
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../proto/testdata/tls");
+    let text = format!(
+        "{}tls:\n  cert: {}\n  key: {}\n",
+        yaml(port, &dir.path().display().to_string()),
+        certificates.join("server.pem").display(),
+        certificates.join("server.key").display()
+    );
+    let config = ClusterConfig::from_yaml(&text, "tls.yaml").unwrap();
+    let plan = Plan::build(config).await.unwrap();
+    let service = CoordinatorService::new(plan).await.unwrap();
+    let (stop, stopped) = oneshot::channel::<()>();
+    let server = tokio::spawn(service.run("right-token", async {
+        let _ = stopped.await;
+    }));
+    let tls = proto::tls::client_config(&certificates.join("ca.pem"), "localhost").unwrap();
+    let endpoint = tonic::transport::Endpoint::from_shared(format!("https://127.0.0.1:{port}"))
+        .unwrap()
+        .tls_config(tls)
+        .unwrap();
+    let channel = loop {
+        match endpoint.connect().await {
+            Ok(channel) => break channel,
+            Err(_) => tokio::time::sleep(Duration::from_millis(50)).await,
+        }
+    };
+    let mut client = CoordinatorClient::with_interceptor(
+        channel.clone(),
+        proto::AttachToken::new("right-token").unwrap(),
+    );
+    let status = client.status(StatusRequest {}).await.unwrap().into_inner();
+    assert_eq!(status.job_name, "rpc-test");
+    let mut wrong =
+        CoordinatorClient::with_interceptor(channel, proto::AttachToken::new("guessed").unwrap());
+    let refused = wrong.status(StatusRequest {}).await.unwrap_err();
+    assert_eq!(refused.code(), tonic::Code::Unauthenticated);
+
+    let plain = tonic::transport::Endpoint::from_shared(format!("http://127.0.0.1:{port}"))
+        .unwrap()
+        .connect()
+        .await;
+    if let Ok(channel) = plain {
+        let mut client = CoordinatorClient::with_interceptor(
+            channel,
+            proto::AttachToken::new("right-token").unwrap(),
+        );
+        assert!(
+            client.status(StatusRequest {}).await.is_err(),
+            "plain text reached a TLS coordinator"
+        );
+    }
+    let _ = stop.send(());
+    server.await.unwrap().unwrap();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_tls_key_that_is_not_a_key_is_named_at_start() {
+    let dir = tempfile::tempdir().unwrap();
+    let port = free_port().unwrap();
+    let certificates =
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../proto/testdata/tls");
+    let text = format!(
+        "{}tls:\n  cert: {}\n  key: {}\n",
+        yaml(port, &dir.path().display().to_string()),
+        certificates.join("server.pem").display(),
+        certificates.join("ca.pem").display()
+    );
+    let config = ClusterConfig::from_yaml(&text, "tls.yaml").unwrap();
+    let plan = Plan::build(config).await.unwrap();
+    let service = CoordinatorService::new(plan).await.unwrap();
+    let error = service
+        .run("right-token", std::future::pending())
+        .await
+        .unwrap_err();
+    assert!(error.to_string().contains("ca.pem"), "{error}");
+}

@@ -7,7 +7,7 @@ use anyhow::Context;
 use tokio::sync::watch;
 use trainer_core::cli::Flags;
 
-use crate::collective::{CollectiveService, Ring, spawn_server};
+use crate::collective::{CollectiveService, Link, Ring, spawn_server};
 
 /// Token of the benchmark's private ring.
 const BENCH_TOKEN: &str = "allreduce-bench";
@@ -29,26 +29,29 @@ pub fn run_rank(flags: &Flags) -> anyhow::Result<()> {
         .map(|s| s.parse::<f64>().with_context(|| format!("size `{s}`")))
         .collect::<Result<_, _>>()?;
     let repeats: usize = flags.get("repeats").unwrap_or("5").parse()?;
+    let chunk_values: Option<usize> = flags.get("chunk-values").map(str::parse).transpose()?;
+    let threads: usize = flags.get("threads").unwrap_or("1").parse()?;
     let runtime = tokio::runtime::Builder::new_multi_thread()
-        .worker_threads(2)
+        .worker_threads(threads)
         .enable_all()
         .build()?;
-    runtime.block_on(async {
+    let peers_owned = peers.clone();
+    let task = runtime.spawn(async move {
+        let peers = peers_owned;
         let service = CollectiveService::default();
         let mailbox = service.mailbox();
         let listener = tokio::net::TcpListener::bind(&peers[rank]).await?;
-        spawn_server(listener, service, BENCH_TOKEN);
+        let link = Link {
+            token: BENCH_TOKEN.into(),
+            timeout: Duration::from_secs(60),
+            tls: None,
+        };
+        spawn_server(listener, service, &link)?;
         let (_cancel, cancelled) = watch::channel(false);
-        let mut ring = Ring::connect(
-            &mailbox,
-            rank,
-            &peers,
-            1,
-            BENCH_TOKEN,
-            cancelled,
-            Duration::from_secs(60),
-        )
-        .await?;
+        let mut ring = Ring::connect(&mailbox, rank, &peers, 1, &link, cancelled).await?;
+        if let Some(values) = chunk_values {
+            ring.set_chunk_values(values);
+        }
         for size in sizes {
             let values = ((size * 1e6) / 4.0) as usize;
             let mut buffer: Vec<f32> = (0..values)
@@ -68,7 +71,8 @@ pub fn run_rank(flags: &Flags) -> anyhow::Result<()> {
             }
         }
         anyhow::Ok(())
-    })?;
+    });
+    runtime.block_on(task)??;
     // Let the peer finish reading before the streams close.
     std::thread::sleep(Duration::from_millis(300));
     Ok(())

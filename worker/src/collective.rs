@@ -70,6 +70,30 @@ pub enum CollectiveError {
     /// The coordinator abandoned the generation.
     #[error("generation abandoned by the coordinator")]
     Cancelled,
+    /// The TLS settings could not be applied to the collective server.
+    #[error("collective TLS: {0}")]
+    Tls(String),
+}
+
+/// How ranks reach each other: the job token every chunk stream carries, the longest wait for
+/// a peer, and TLS when the job runs it (every rank must then serve and dial TLS).
+#[derive(Clone)]
+pub struct Link {
+    /// The job token.
+    pub token: String,
+    /// Longest wait for a peer to connect or for its next chunk.
+    pub timeout: Duration,
+    /// TLS for the Collective service and for dialling peers; `None`: plain HTTP/2.
+    pub tls: Option<PeerTls>,
+}
+
+/// A rank's TLS: its own server identity and the trust it puts in its peers'.
+#[derive(Clone)]
+pub struct PeerTls {
+    /// This rank's certificate and key, for its Collective service.
+    pub server: tonic::transport::ServerTlsConfig,
+    /// The CA and name that peers' certificates must match.
+    pub client: tonic::transport::ClientTlsConfig,
 }
 
 type Inbound = Result<Chunk, String>;
@@ -155,16 +179,26 @@ impl Collective for CollectiveService {
     }
 }
 
-/// Serves `service` on `listener` behind the job-token check, with flow-control windows sized
-/// for megabyte chunks. Runs until the process ends.
-pub fn spawn_server(listener: tokio::net::TcpListener, service: CollectiveService, token: &str) {
+/// Serves `service` on `listener` behind the job-token check (and TLS when `link` has it),
+/// with flow-control windows sized for megabyte chunks. Runs until the process ends.
+pub fn spawn_server(
+    listener: tokio::net::TcpListener,
+    service: CollectiveService,
+    link: &Link,
+) -> Result<(), CollectiveError> {
     let server = tonic::service::interceptor::InterceptedService::new(
         proto::v1::collective_server::CollectiveServer::new(service)
             .max_decoding_message_size(proto::MAX_MESSAGE_BYTES),
-        proto::RequireToken::new(token),
+        proto::RequireToken::new(&link.token),
     );
+    let mut builder = tonic::transport::Server::builder();
+    if let Some(tls) = &link.tls {
+        builder = builder
+            .tls_config(tls.server.clone())
+            .map_err(|e| CollectiveError::Tls(e.to_string()))?;
+    }
     tokio::spawn(
-        tonic::transport::Server::builder()
+        builder
             .initial_stream_window_size(Some(16 * 1024 * 1024))
             .initial_connection_window_size(Some(32 * 1024 * 1024))
             .max_frame_size(Some(1024 * 1024))
@@ -172,6 +206,7 @@ pub fn spawn_server(listener: tokio::net::TcpListener, service: CollectiveServic
             .add_service(server)
             .serve_with_incoming(tokio_stream::wrappers::TcpListenerStream::new(listener)),
     );
+    Ok(())
 }
 
 /// Figures of one all-reduce.
@@ -204,10 +239,10 @@ impl Ring {
         rank: usize,
         peers: &[String],
         generation: u64,
-        token: &str,
+        link: &Link,
         cancel: watch::Receiver<bool>,
-        timeout: Duration,
     ) -> Result<Self, CollectiveError> {
+        let timeout = link.timeout;
         let world = peers.len().max(1);
         let mut ring = Self {
             rank,
@@ -230,8 +265,15 @@ impl Ring {
             address: address.clone(),
             reason,
         };
-        let endpoint = tonic::transport::Endpoint::from_shared(format!("http://{address}"))
-            .map_err(|e| failed(e.to_string()))?
+        let scheme = proto::tls::scheme(link.tls.is_some());
+        let mut endpoint = tonic::transport::Endpoint::from_shared(format!("{scheme}://{address}"))
+            .map_err(|e| failed(e.to_string()))?;
+        if let Some(tls) = &link.tls {
+            endpoint = endpoint
+                .tls_config(tls.client.clone())
+                .map_err(|e| failed(e.to_string()))?;
+        }
+        let endpoint = endpoint
             .tcp_nodelay(true)
             .initial_stream_window_size(Some(16 * 1024 * 1024))
             .initial_connection_window_size(Some(32 * 1024 * 1024))
@@ -244,7 +286,7 @@ impl Ring {
                 Err(_) => tokio::time::sleep(Duration::from_millis(100)).await,
             }
         };
-        let attach = proto::AttachToken::new(token).map_err(|e| failed(e.to_string()))?;
+        let attach = proto::AttachToken::new(&link.token).map_err(|e| failed(e.to_string()))?;
         let mut client = CollectiveClient::with_interceptor(channel, attach)
             .max_encoding_message_size(proto::MAX_MESSAGE_BYTES);
         let (sender, receiver) = mpsc::unbounded_channel();

@@ -11,14 +11,16 @@ use anyhow::{Context, anyhow, bail};
 use proto::v1::assignment::Action;
 use proto::v1::coordinator_client::CoordinatorClient;
 use proto::v1::{
-    Assignment, AwaitAssignmentRequest, CheckpointCommit, HeartbeatRequest, LossTerms,
-    RegisterRequest, StepReport,
+    Assignment, AwaitAssignmentRequest, CheckpointCommit, HeartbeatRequest, LeaveRequest,
+    LossTerms, RegisterRequest, StepReport,
 };
+use telemetry::Registry;
 use tokio::runtime::Runtime;
 use tokio::sync::watch;
 use tonic::service::interceptor::InterceptedService;
 use tonic::transport::Channel;
 use trainer_core::backend::BackendChoice;
+use trainer_core::data::prefetch::{Prefetched, Schedule};
 use trainer_core::data::spec::{DataSpec, RankSource, rank_slice};
 use trainer_core::flat::{flatten_gradients, parameter_checksum, unflatten_gradients};
 use trainer_core::lpips::Lpips;
@@ -26,7 +28,8 @@ use trainer_core::trainer::{TrainConfig, Trainer};
 use trainer_core::{XFactor, XFactorConfig};
 
 use crate::checkpoints;
-use crate::collective::{CollectiveService, Ring, spawn_server};
+use crate::collective::{CollectiveService, Link, PeerTls, Ring, spawn_server};
+use crate::metrics;
 
 /// Consecutive generations that may fail before the worker gives up.
 const MAX_CONSECUTIVE_FAILURES: u32 = 8;
@@ -56,6 +59,47 @@ pub struct WorkerOptions {
     pub collective_timeout: Duration,
     /// Scratch space for checkpoints on their way to and from the store.
     pub scratch: PathBuf,
+    /// `host:port` for Prometheus `/metrics`; `None`: no endpoint.
+    pub metrics_address: Option<String>,
+    /// TLS towards the coordinator and between ranks; `None`: plain HTTP/2.
+    pub tls: Option<WorkerTls>,
+}
+
+/// A worker's TLS files. With `identity`, its Collective service runs TLS too and peers are
+/// dialled over TLS (every worker of a job must then have one).
+#[derive(Debug, Clone)]
+pub struct WorkerTls {
+    /// CA that signed the coordinator's (and peers') certificates.
+    pub ca: PathBuf,
+    /// Name the certificates must carry; `None`: the host of the address dialled.
+    pub domain: Option<String>,
+    /// This worker's certificate and key, for its Collective service.
+    pub identity: Option<(PathBuf, PathBuf)>,
+}
+
+impl WorkerTls {
+    fn client(&self, host: &str) -> anyhow::Result<tonic::transport::ClientTlsConfig> {
+        let domain = self.domain.as_deref().unwrap_or(host);
+        Ok(proto::tls::client_config(&self.ca, domain)?)
+    }
+
+    fn peers(&self) -> anyhow::Result<Option<PeerTls>> {
+        let Some((cert, key)) = &self.identity else {
+            return Ok(None);
+        };
+        Ok(Some(PeerTls {
+            server: proto::tls::server_config(cert, key)?,
+            client: self.client("localhost")?,
+        }))
+    }
+}
+
+/// How a generation ended for this worker.
+enum Ending {
+    /// The stage (or this generation's part of it) is done.
+    Done,
+    /// SIGTERM arrived; the last step finished cleanly and nothing is half-committed.
+    Stopping,
 }
 
 /// Shared between the training thread and the heartbeat task.
@@ -64,6 +108,8 @@ struct Progress {
     generation: AtomicU64,
     step: AtomicU64,
     cancel: watch::Sender<bool>,
+    stopping: watch::Sender<bool>,
+    metrics: Arc<Registry>,
 }
 
 /// Runs the worker until the job finishes. Blocking; owns its async runtime.
@@ -72,23 +118,57 @@ pub fn run(options: WorkerOptions) -> anyhow::Result<()> {
         .worker_threads(2)
         .enable_all()
         .build()?;
+    let link = Link {
+        token: options.token.clone(),
+        timeout: options.collective_timeout,
+        tls: options
+            .tls
+            .as_ref()
+            .map(WorkerTls::peers)
+            .transpose()?
+            .flatten(),
+    };
     let collective = CollectiveService::default();
     let mailbox = collective.mailbox();
-    let address = runtime.block_on(serve_collective(&options, collective))?;
-    let mut client = runtime.block_on(connect(&options.coordinator, &options.token))?;
+    let address = runtime.block_on(serve_collective(&options, collective, &link))?;
+    let mut client = runtime.block_on(connect(
+        &options.coordinator,
+        &options.token,
+        options.tls.as_ref(),
+    ))?;
     let (cancel, _) = watch::channel(false);
+    let (stopping, _) = watch::channel(false);
     let progress = Arc::new(Progress {
         worker: AtomicU64::new(0),
         generation: AtomicU64::new(0),
         step: AtomicU64::new(0),
         cancel,
+        stopping,
+        metrics: Arc::new(Registry::new()),
     });
+    if let Some(address) = &options.metrics_address {
+        runtime.block_on(telemetry::http::serve(
+            address,
+            Arc::clone(&progress.metrics),
+        ))?;
+    }
+    runtime.spawn(watch_for_termination(Arc::clone(&progress)));
     let interval = runtime.block_on(register(&mut client, &options, &address, &progress))?;
     runtime.spawn(heartbeats(client.clone(), progress.clone(), interval));
     let mut after = 0;
     let mut failures = 0;
     loop {
-        let assignment = match runtime.block_on(await_assignment(&mut client, &progress, after)) {
+        let mut stopping = progress.stopping.subscribe();
+        let waited = runtime.block_on(async {
+            tokio::select! {
+                assignment = await_assignment(&mut client, &progress, after) => Some(assignment),
+                _ = stopping.wait_for(|stop| *stop) => None,
+            }
+        });
+        let Some(waited) = waited else {
+            return leave(&runtime, &mut client, &progress);
+        };
+        let assignment = match waited {
             Ok(assignment) => assignment,
             Err(status) if status.code() == tonic::Code::NotFound => {
                 tracing::warn!(reason = %status.message(), "registering again");
@@ -117,16 +197,22 @@ pub fn run(options: WorkerOptions) -> anyhow::Result<()> {
             &runtime,
             &mut client,
             &options,
+            &link,
             &mailbox,
             &progress,
             &assignment,
         ) {
-            Ok(()) => {
+            Ok(Ending::Done) => {
                 failures = 0;
                 tracing::info!("stage {} done in this generation", assignment.stage);
             }
+            Ok(Ending::Stopping) => {
+                drop(_entered);
+                return leave(&runtime, &mut client, &progress);
+            }
             Err(error) => {
                 failures += 1;
+                progress.metrics.add(&metrics::RESTARTS, &[], 1.0);
                 tracing::warn!(error = %format!("{error:#}"), "generation abandoned");
                 if failures >= MAX_CONSECUTIVE_FAILURES {
                     bail!("{failures} generations in a row failed; last error: {error:#}");
@@ -136,15 +222,49 @@ pub fn run(options: WorkerOptions) -> anyhow::Result<()> {
     }
 }
 
+/// Sets `stopping` on SIGTERM or Ctrl-C; the training loop finishes its step and leaves.
+async fn watch_for_termination(progress: Arc<Progress>) {
+    let mut terminate =
+        match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
+            Ok(signal) => signal,
+            Err(error) => {
+                tracing::warn!(%error, "SIGTERM cannot be caught; shutdown will be abrupt");
+                return;
+            }
+        };
+    tokio::select! {
+        _ = terminate.recv() => {}
+        _ = tokio::signal::ctrl_c() => {}
+    }
+    tracing::warn!("shutdown requested: finishing the current step, then leaving the job");
+    progress.stopping.send_replace(true);
+}
+
+/// Tells the coordinator this worker is gone, so its group re-forms at once.
+fn leave(runtime: &Runtime, client: &mut Client, progress: &Progress) -> anyhow::Result<()> {
+    let request = LeaveRequest {
+        worker_id: progress.worker.load(Ordering::SeqCst),
+        reason: "SIGTERM".into(),
+    };
+    match runtime.block_on(client.leave(request)) {
+        Ok(_) => tracing::info!("left the job"),
+        Err(status) => {
+            tracing::warn!(error = %status.message(), "the coordinator did not hear the leave; it will notice the silence")
+        }
+    }
+    Ok(())
+}
+
 async fn serve_collective(
     options: &WorkerOptions,
     service: CollectiveService,
+    link: &Link,
 ) -> anyhow::Result<String> {
     let listener = tokio::net::TcpListener::bind(&options.listen)
         .await
         .with_context(|| format!("cannot listen on {}", options.listen))?;
     let bound: SocketAddr = listener.local_addr()?;
-    spawn_server(listener, service, &options.token);
+    spawn_server(listener, service, link)?;
     Ok(options
         .advertise
         .clone()
@@ -152,10 +272,14 @@ async fn serve_collective(
 }
 
 /// Connects to the coordinator, retrying for a while (it may start after the workers).
-pub async fn connect(address: &str, token: &str) -> anyhow::Result<Client> {
-    let endpoint = tonic::transport::Endpoint::from_shared(address.to_string())
+async fn connect(address: &str, token: &str, tls: Option<&WorkerTls>) -> anyhow::Result<Client> {
+    let mut endpoint = tonic::transport::Endpoint::from_shared(address.to_string())
         .with_context(|| format!("coordinator address `{address}` is not a URL"))?
         .connect_timeout(Duration::from_secs(2));
+    if let Some(tls) = tls {
+        let host = endpoint.uri().host().unwrap_or("localhost").to_string();
+        endpoint = endpoint.tls_config(tls.client(&host)?)?;
+    }
     let deadline = Instant::now() + Duration::from_secs(60);
     let channel = loop {
         match endpoint.connect().await {
@@ -229,6 +353,7 @@ async fn heartbeats(mut client: Client, progress: Arc<Progress>, interval: Durat
         };
         match client.heartbeat(request).await {
             Ok(reply) => {
+                progress.metrics.add(&metrics::HEARTBEATS, &[], 1.0);
                 let reply = reply.into_inner();
                 if !reply.generation_current
                     && generation == progress.generation.load(Ordering::SeqCst)
@@ -237,7 +362,10 @@ async fn heartbeats(mut client: Client, progress: Arc<Progress>, interval: Durat
                     progress.cancel.send_replace(true);
                 }
             }
-            Err(status) => tracing::warn!(error = %status.message(), "heartbeat failed"),
+            Err(status) => {
+                progress.metrics.add(&metrics::HEARTBEAT_FAILURES, &[], 1.0);
+                tracing::warn!(error = %status.message(), "heartbeat failed");
+            }
         }
     }
 }
@@ -265,10 +393,11 @@ fn train_generation(
     runtime: &Runtime,
     client: &mut Client,
     options: &WorkerOptions,
+    link: &Link,
     mailbox: &crate::collective::Mailbox,
     progress: &Progress,
     assignment: &Assignment,
-) -> anyhow::Result<()> {
+) -> anyhow::Result<Ending> {
     let rank = assignment.rank as usize;
     let world = assignment.world_size as usize;
     let model_config: XFactorConfig =
@@ -318,24 +447,39 @@ fn train_generation(
         total_steps = assignment.total_steps,
         "training"
     );
-    let source = runtime.block_on(RankSource::open(&data, world, rank))?;
-    let shard = source.shard_at(trainer.step());
+    let (first, count) = rank_slice(train.global_batch, world, rank);
+    let rank_source = runtime.block_on(RankSource::open(&data, world, rank))?;
+    let shard = rank_source.shard_at(trainer.step());
     if !shard.is_empty() {
         tracing::info!(sequences = shard.len(), "data shard of this epoch");
     }
+    let schedule = Schedule {
+        start_step: trainer.step(),
+        first_sample: first as u64,
+        global_batch: count,
+        micro_batch: train.micro_batch,
+    };
+    let micro_batches_per_step = count.div_ceil(train.micro_batch.max(1));
+    let source = Prefetched::new(rank_source, schedule, 2 * micro_batches_per_step, 1);
     let mut ring = runtime.block_on(Ring::connect(
         mailbox,
         rank,
         &assignment.peers,
         assignment.generation,
-        &options.token,
+        link,
         progress.cancel.subscribe(),
-        options.collective_timeout,
     ))?;
-    let (first, count) = rank_slice(train.global_batch, world, rank);
+    let registry = &progress.metrics;
+    registry.set(&metrics::STAGE, &[], f64::from(assignment.stage));
+    registry.set(&metrics::RANK, &[], f64::from(assignment.rank));
+    registry.set(&metrics::GENERATION, &[], assignment.generation as f64);
     while trainer.step() < assignment.total_steps {
         let step = trainer.step();
         let _span = tracing::info_span!("step", step).entered();
+        if *progress.stopping.borrow() {
+            tracing::info!(step, "stopping before this step; nothing of it was applied");
+            return Ok(Ending::Stopping);
+        }
         if *progress.cancel.borrow() {
             bail!(
                 "the coordinator abandoned generation {}",
@@ -353,7 +497,7 @@ fn train_generation(
             .with_context(|| format!("all-reduce of step {step}"))?;
         let loss = flat.pop().unwrap_or(f32::NAN);
         let grads = unflatten_gradients(trainer.model(), &flat)?;
-        let metrics = trainer.apply_gradients(&grads, loss);
+        let outcome = trainer.apply_gradients(&grads, loss);
         let done = trainer.step();
         progress.step.store(done, Ordering::SeqCst);
         let checksum_due =
@@ -361,29 +505,47 @@ fn train_generation(
         let checksum = checksum_due.then(|| parameter_checksum(trainer.model()));
         let elapsed = started.elapsed().as_secs_f64();
         tracing::info!(
-            loss = metrics.loss,
-            lr = metrics.learning_rate,
-            grad_norm = metrics.grad_norm,
+            loss = outcome.loss,
+            lr = outcome.learning_rate,
+            grad_norm = outcome.grad_norm,
             step_s = elapsed,
             allreduce_s = reduce.seconds,
             "step done"
         );
+        let skipped_frames = source.inner().skipped_frames();
+        registry.set(&metrics::STEP, &[], done as f64);
+        registry.set(&metrics::LOSS, &[], f64::from(outcome.loss));
+        registry.set(&metrics::LEARNING_RATE, &[], outcome.learning_rate);
+        registry.set(&metrics::GRAD_NORM, &[], outcome.grad_norm);
+        registry.set(&metrics::STEP_SECONDS, &[], elapsed);
+        registry.set(
+            &metrics::SAMPLES_PER_SECOND,
+            &[],
+            count as f64 / elapsed.max(1e-9),
+        );
+        registry.set(&metrics::ALLREDUCE_SECONDS, &[], reduce.seconds);
+        if reduce.seconds > 0.0 {
+            let bytes = (flat.len() * std::mem::size_of::<f32>()) as f64;
+            registry.set(&metrics::ALLREDUCE_BANDWIDTH, &[], bytes / reduce.seconds);
+        }
+        registry.set(&metrics::LOADER_QUEUE, &[], source.queued() as f64);
+        registry.raise_to(&metrics::SKIPPED_FRAMES, &[], skipped_frames as f64);
         let report = StepReport {
             worker_id: progress.worker.load(Ordering::SeqCst),
             generation: assignment.generation,
             stage: assignment.stage,
             step,
             loss: Some(LossTerms {
-                total: metrics.loss,
-                learning_rate: metrics.learning_rate,
-                grad_norm: metrics.grad_norm,
-                applied: metrics.applied,
+                total: outcome.loss,
+                learning_rate: outcome.learning_rate,
+                grad_norm: outcome.grad_norm,
+                applied: outcome.applied,
             }),
             parameter_checksum: checksum.unwrap_or(0),
             checksum_computed: checksum.is_some(),
             samples_per_s: count as f64 / elapsed.max(1e-9),
             allreduce_s: reduce.seconds,
-            skipped_frames: source.skipped_frames(),
+            skipped_frames,
         };
         let ack = runtime
             .block_on(client.report_step(report))
@@ -400,7 +562,7 @@ fn train_generation(
             )?;
         }
     }
-    Ok(())
+    Ok(Ending::Done)
 }
 
 fn commit(

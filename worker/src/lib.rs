@@ -9,3 +9,4 @@ pub mod bench;
 pub mod checkpoints;
 pub mod collective;
 pub mod daemon;
+pub mod metrics;

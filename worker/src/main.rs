@@ -5,20 +5,54 @@ use std::time::Duration;
 
 use anyhow::{Context, bail};
 use trainer_core::cli::{Flags, init_logging};
-use worker::daemon::{WorkerOptions, run};
+use worker::daemon::{WorkerOptions, WorkerTls, run};
 
 const USAGE: &str = "usage:
-  xfactor-worker --coordinator http://HOST:PORT (--token TOKEN | --token-env VAR)
+  xfactor-worker --coordinator http(s)://HOST:PORT (--token TOKEN | --token-env VAR)
                  [--listen 127.0.0.1:0] [--advertise HOST:PORT] [--device auto|cpu|wgpu]
                  [--threads N] [--name NAME] [--model-config MODEL.json]
                  [--collective-timeout-s 120] [--scratch DIR] [--log-format human|json]
-  xfactor-worker allreduce-bench --rank R --peers A,B,... --sizes-mb 1,16,64,100 [--repeats 5]";
+                 [--metrics-address HOST:PORT]
+                 [--tls-ca CA.pem [--tls-domain NAME] [--tls-cert CERT.pem --tls-key KEY.pem]]
+  xfactor-worker allreduce-bench --rank R --peers A,B,... --sizes-mb 1,16,64,100 [--repeats 5] [--threads 1] [--chunk-values N]";
+
+/// TLS settings from `--tls-*`: the CA is required for any TLS, and the certificate and key
+/// come as a pair.
+fn tls_options(flags: &Flags) -> anyhow::Result<Option<WorkerTls>> {
+    let identity = match (flags.get("tls-cert"), flags.get("tls-key")) {
+        (Some(cert), Some(key)) => Some((cert.into(), key.into())),
+        (None, None) => None,
+        _ => bail!("--tls-cert and --tls-key go together"),
+    };
+    match flags.get("tls-ca") {
+        Some(ca) => Ok(Some(WorkerTls {
+            ca: ca.into(),
+            domain: flags.get("tls-domain").map(str::to_string),
+            identity,
+        })),
+        None if identity.is_some() || flags.has("tls-domain") => {
+            bail!("--tls-cert, --tls-key and --tls-domain need --tls-ca")
+        }
+        None => Ok(None),
+    }
+}
 
 fn main() -> anyhow::Result<()> {
     let args: Vec<String> = std::env::args().skip(1).collect();
     if args.first().map(String::as_str) == Some("allreduce-bench") {
-        let flags = Flags::parse(&args[1..], &[], &["rank", "peers", "sizes-mb", "repeats"])
-            .map_err(|e| anyhow::anyhow!("{e}\n{USAGE}"))?;
+        let flags = Flags::parse(
+            &args[1..],
+            &[],
+            &[
+                "rank",
+                "peers",
+                "sizes-mb",
+                "repeats",
+                "threads",
+                "chunk-values",
+            ],
+        )
+        .map_err(|e| anyhow::anyhow!("{e}\n{USAGE}"))?;
         return worker::bench::run_rank(&flags);
     }
     let flags = Flags::parse(
@@ -37,6 +71,11 @@ fn main() -> anyhow::Result<()> {
             "collective-timeout-s",
             "scratch",
             "log-format",
+            "metrics-address",
+            "tls-ca",
+            "tls-domain",
+            "tls-cert",
+            "tls-key",
         ],
     )
     .map_err(|e| anyhow::anyhow!("{e}\n{USAGE}"))?;
@@ -87,6 +126,8 @@ fn main() -> anyhow::Result<()> {
         expected_model_config,
         collective_timeout: Duration::from_secs_f64(timeout),
         scratch,
+        metrics_address: flags.get("metrics-address").map(str::to_string),
+        tls: tls_options(&flags)?,
     };
     run(options)
 }

@@ -7,17 +7,43 @@ use bytes::Bytes;
 use proto::v1::Chunk;
 use proto::v1::collective_client::CollectiveClient;
 use tokio::sync::watch;
-use worker::collective::{CollectiveError, CollectiveService, Mailbox, Ring, spawn_server};
+use worker::collective::{
+    CollectiveError, CollectiveService, Link, Mailbox, PeerTls, Ring, spawn_server,
+};
 
 const TOKEN: &str = "ring-test";
 
-async fn serve() -> (String, std::sync::Arc<Mailbox>) {
+fn plain() -> Link {
+    Link {
+        token: TOKEN.into(),
+        timeout: Duration::from_secs(10),
+        tls: None,
+    }
+}
+
+fn with_test_certificate() -> Link {
+    let tls = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../proto/testdata/tls");
+    Link {
+        tls: Some(PeerTls {
+            server: proto::tls::server_config(&tls.join("server.pem"), &tls.join("server.key"))
+                .unwrap(),
+            client: proto::tls::client_config(&tls.join("ca.pem"), "localhost").unwrap(),
+        }),
+        ..plain()
+    }
+}
+
+async fn serve_with(link: &Link) -> (String, std::sync::Arc<Mailbox>) {
     let service = CollectiveService::default();
     let mailbox = service.mailbox();
     let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
     let address = listener.local_addr().unwrap().to_string();
-    spawn_server(listener, service, TOKEN);
+    spawn_server(listener, service, link).unwrap();
     (address, mailbox)
+}
+
+async fn serve() -> (String, std::sync::Arc<Mailbox>) {
+    serve_with(&plain()).await
 }
 
 async fn join(
@@ -27,17 +53,9 @@ async fn join(
     generation: u64,
     cancelled: watch::Receiver<bool>,
 ) -> Ring {
-    Ring::connect(
-        mailbox,
-        rank,
-        peers,
-        generation,
-        TOKEN,
-        cancelled,
-        Duration::from_secs(10),
-    )
-    .await
-    .unwrap()
+    Ring::connect(mailbox, rank, peers, generation, &plain(), cancelled)
+        .await
+        .unwrap()
 }
 
 async fn channel_to(address: &str) -> tonic::transport::Channel {
@@ -132,4 +150,45 @@ async fn a_stream_without_the_token_is_refused() {
         .await
         .unwrap_err();
     assert_eq!(refused.code(), tonic::Code::Unauthenticated);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn two_ranks_sum_over_tls_and_plain_text_is_refused() {
+    let link = with_test_certificate();
+    let mut servers = Vec::new();
+    for _ in 0..2 {
+        servers.push(serve_with(&link).await);
+    }
+    let peers: Vec<String> = servers.iter().map(|(a, _)| a.clone()).collect();
+    let (_cancel, cancelled) = watch::channel(false);
+    let mut tasks = Vec::new();
+    for (rank, (_, mailbox)) in servers.into_iter().enumerate() {
+        let (peers, cancelled, link) = (peers.clone(), cancelled.clone(), link.clone());
+        tasks.push(tokio::spawn(async move {
+            let mut ring = Ring::connect(&mailbox, rank, &peers, 3, &link, cancelled)
+                .await
+                .unwrap();
+            let mut values = vec![rank as f32 + 1.0; 300];
+            ring.all_reduce(&mut values).await.unwrap();
+            values
+        }));
+    }
+    for task in tasks {
+        assert!(task.await.unwrap().iter().all(|&v| v == 3.0));
+    }
+    let plain_text = tonic::transport::Endpoint::from_shared(format!("http://{}", peers[0]))
+        .unwrap()
+        .connect()
+        .await;
+    if let Ok(channel) = plain_text {
+        let mut client =
+            CollectiveClient::with_interceptor(channel, proto::AttachToken::new(TOKEN).unwrap());
+        let chunk = Chunk {
+            generation: 9,
+            values: Bytes::from(vec![0u8; 8]),
+            ..Chunk::default()
+        };
+        let refused = client.push(tokio_stream::iter(vec![chunk])).await;
+        assert!(refused.is_err(), "a plain-text stream reached a TLS server");
+    }
 }

@@ -2,11 +2,17 @@
 //! writes its cluster YAML, and runs a coordinator and worker processes on loopback through
 //! both stages.
 
+use std::io::{IsTerminal, Write};
 use std::path::PathBuf;
-use std::time::Instant;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::{Duration, Instant};
 
 use anyhow::{Context, bail};
 use coordinator::local::{LocalJob, free_port};
+use coordinator::progress;
+use proto::v1::StatusRequest;
+use proto::v1::coordinator_client::CoordinatorClient;
 use trainer_core::cli::{Flags, init_logging};
 
 const USAGE: &str =
@@ -50,7 +56,15 @@ fn main() -> anyhow::Result<()> {
         workers = job.workers,
         "coordinator and workers started; logs in coordinator.log and worker-*.log"
     );
+    let done = Arc::new(AtomicBool::new(false));
+    let bar = std::io::stderr()
+        .is_terminal()
+        .then(|| runtime.spawn(draw_progress(job.clone(), started, Arc::clone(&done))));
     let status = coordinator.wait()?;
+    done.store(true, Ordering::SeqCst);
+    if let Some(bar) = bar {
+        let _ = runtime.block_on(bar);
+    }
     for worker in &mut workers {
         if status.success() {
             worker.wait()?;
@@ -92,4 +106,34 @@ fn main() -> anyhow::Result<()> {
         job.report_path().display()
     );
     Ok(())
+}
+
+/// Redraws the progress line from the coordinator's status twice a second until `done`.
+async fn draw_progress(job: LocalJob, started: Instant, done: Arc<AtomicBool>) {
+    let address = format!("http://127.0.0.1:{}", job.port);
+    let mut client = None;
+    while !done.load(Ordering::SeqCst) {
+        tokio::time::sleep(Duration::from_millis(500)).await;
+        if client.is_none() {
+            let Ok(endpoint) = tonic::transport::Endpoint::from_shared(address.clone()) else {
+                return;
+            };
+            let Ok(attach) = proto::AttachToken::new(job.token()) else {
+                return;
+            };
+            if let Ok(channel) = endpoint.connect().await {
+                client = Some(CoordinatorClient::with_interceptor(channel, attach));
+            }
+        }
+        let Some(connected) = client.as_mut() else {
+            continue;
+        };
+        if let Ok(status) = connected.status(StatusRequest {}).await {
+            let line = progress::line(&status.into_inner(), started.elapsed());
+            let mut stderr = std::io::stderr();
+            let _ = write!(stderr, "\r{line}\x1b[K");
+            let _ = stderr.flush();
+        }
+    }
+    eprintln!();
 }

@@ -9,11 +9,14 @@ use std::thread::JoinHandle;
 use crate::trainer::{BatchSource, Samples};
 
 /// The request pattern the trainer follows: for each step, micro-batches of `micro_batch`
-/// samples covering `0..global_batch`.
+/// samples covering `first_sample..first_sample + global_batch` (a data-parallel rank asks for
+/// its slice of the global batch only).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct Schedule {
     /// First step to prefetch.
     pub start_step: u64,
+    /// First sample of each step this consumer asks for (0 for a single process).
+    pub first_sample: u64,
     /// Samples per step.
     pub global_batch: usize,
     /// Samples per request.
@@ -29,16 +32,18 @@ impl Schedule {
         let per_step = self.per_step();
         (
             self.start_step + index / per_step,
-            (index % per_step) * self.micro_batch as u64,
+            self.first_sample + (index % per_step) * self.micro_batch as u64,
         )
     }
 
     fn index(&self, step: u64, first: u64, count: usize) -> Option<u64> {
+        let offset = first.checked_sub(self.first_sample)?;
         let aligned = count == self.micro_batch
             && step >= self.start_step
-            && first.is_multiple_of(self.micro_batch.max(1) as u64);
+            && offset < self.global_batch as u64
+            && offset.is_multiple_of(self.micro_batch.max(1) as u64);
         aligned
-            .then(|| (step - self.start_step) * self.per_step() + first / self.micro_batch as u64)
+            .then(|| (step - self.start_step) * self.per_step() + offset / self.micro_batch as u64)
     }
 }
 
@@ -224,6 +229,7 @@ mod tests {
         let calls = Arc::new(AtomicU64::new(0));
         let schedule = Schedule {
             start_step: 3,
+            first_sample: 0,
             global_batch: 8,
             micro_batch: 4,
         };
@@ -252,5 +258,33 @@ mod tests {
         assert!(source.queued() <= 3);
         // Out-of-plan requests still work (a resumed run asking for an earlier step).
         assert_eq!(first_values(source.samples(1, 0, 4).unwrap())[0], 1000.0);
+    }
+
+    #[test]
+    fn a_rank_prefetches_only_its_slice_of_the_batch() {
+        let calls = Arc::new(AtomicU64::new(0));
+        let schedule = Schedule {
+            start_step: 0,
+            first_sample: 6,
+            global_batch: 6,
+            micro_batch: 3,
+        };
+        let source = Prefetched::new(
+            Slow {
+                calls: Arc::clone(&calls),
+            },
+            schedule,
+            2,
+            1,
+        );
+        for step in 0..3u64 {
+            for first in [6u64, 9] {
+                let values = first_values(source.samples(step, first, 3).unwrap());
+                assert_eq!(values[0], (step * 1000 + first) as f32);
+            }
+        }
+        std::thread::sleep(Duration::from_millis(50));
+        assert_eq!(source.queued(), 2, "the queue holds the next step's slice");
+        assert!(calls.load(Ordering::SeqCst) <= 6 + 2);
     }
 }

@@ -1,0 +1,108 @@
+//! The coordinator's Prometheus series: job progress, what the workers report each step, and
+//! membership events. Scraped from `/metrics` (see the `telemetry` crate).
+
+use proto::v1::{JobStatus, StepReport};
+use telemetry::{Metric, Registry};
+
+/// Stage being trained (1 or 2; 3 once finished).
+pub const STAGE: Metric = Metric::gauge("xfactor_stage", "Stage being trained (3 once finished).");
+/// Steps done in the current stage.
+pub const STEP: Metric =
+    Metric::gauge("xfactor_step", "Optimiser steps done in the current stage.");
+/// Steps of the current stage.
+pub const STAGE_STEPS: Metric = Metric::gauge("xfactor_stage_steps", "Steps of the current stage.");
+/// Loss of the last step's global batch.
+pub const LOSS: Metric = Metric::gauge("xfactor_loss", "Loss of the last step's global batch.");
+/// Learning rate of the last step.
+pub const LEARNING_RATE: Metric =
+    Metric::gauge("xfactor_learning_rate", "Learning rate of the last step.");
+/// Gradient norm before clipping.
+pub const GRAD_NORM: Metric = Metric::gauge(
+    "xfactor_grad_norm",
+    "Global gradient norm of the last step before clipping.",
+);
+/// Samples per second summed over the group.
+pub const SAMPLES_PER_SECOND: Metric = Metric::gauge(
+    "xfactor_samples_per_second",
+    "Training samples per second, summed over the workers' last steps.",
+);
+/// Per-worker throughput.
+pub const WORKER_SAMPLES_PER_SECOND: Metric = Metric::gauge(
+    "xfactor_worker_samples_per_second",
+    "Samples per second of one worker's last step.",
+);
+/// Per-worker all-reduce time.
+pub const WORKER_ALLREDUCE_SECONDS: Metric = Metric::gauge(
+    "xfactor_worker_allreduce_seconds",
+    "Seconds one worker's last step spent in the all-reduce.",
+);
+/// Per-worker skipped frames.
+pub const WORKER_SKIPPED_FRAMES: Metric = Metric::counter(
+    "xfactor_worker_skipped_frames_total",
+    "Undecodable frames one worker skipped.",
+);
+/// Live workers.
+pub const WORKERS: Metric = Metric::gauge(
+    "xfactor_workers",
+    "Registered workers whose heartbeats are on time.",
+);
+/// Current generation.
+pub const GENERATION: Metric = Metric::gauge(
+    "xfactor_generation",
+    "Current group generation (grows on every re-formation).",
+);
+/// Generations abandoned.
+pub const RESTARTS: Metric = Metric::counter(
+    "xfactor_restarts_total",
+    "Generations abandoned because a worker was lost, left or failed.",
+);
+/// Heartbeats received.
+pub const HEARTBEATS: Metric = Metric::counter(
+    "xfactor_heartbeats_total",
+    "Heartbeats received from workers.",
+);
+/// Commits accepted.
+pub const COMMITS: Metric = Metric::counter("xfactor_commits_total", "Checkpoints committed.");
+/// Checksum disagreements.
+pub const CHECKSUM_MISMATCHES: Metric = Metric::counter(
+    "xfactor_checksum_mismatches_total",
+    "Steps whose ranks reported different parameter checksums.",
+);
+
+/// Publishes one step report. Job-wide loss and learning rate come from rank 0's reports,
+/// which the caller marks with `from_rank0`.
+pub fn record_step(registry: &Registry, report: &StepReport, from_rank0: bool) {
+    let worker = report.worker_id.to_string();
+    let labels = [("worker", worker.as_str())];
+    registry.set(&WORKER_SAMPLES_PER_SECOND, &labels, report.samples_per_s);
+    registry.set(&WORKER_ALLREDUCE_SECONDS, &labels, report.allreduce_s);
+    registry.raise_to(
+        &WORKER_SKIPPED_FRAMES,
+        &labels,
+        report.skipped_frames as f64,
+    );
+    if from_rank0 && let Some(loss) = &report.loss {
+        registry.set(&LOSS, &[], f64::from(loss.total));
+        registry.set(&LEARNING_RATE, &[], loss.learning_rate);
+        registry.set(&GRAD_NORM, &[], loss.grad_norm);
+    }
+}
+
+/// Publishes the job's state as the `status` command sees it, plus the group's throughput
+/// (`samples_per_second` summed over its workers' last reports).
+pub fn record_status(
+    registry: &Registry,
+    status: &JobStatus,
+    stage: u32,
+    samples_per_second: f64,
+    mismatches: usize,
+) {
+    registry.set(&STAGE, &[], f64::from(stage));
+    registry.set(&STEP, &[], status.step as f64);
+    registry.set(&STAGE_STEPS, &[], status.total_steps as f64);
+    registry.set(&WORKERS, &[], f64::from(status.workers));
+    registry.set(&GENERATION, &[], status.generation as f64);
+    registry.raise_to(&RESTARTS, &[], status.restarts as f64);
+    registry.raise_to(&CHECKSUM_MISMATCHES, &[], mismatches as f64);
+    registry.set(&SAMPLES_PER_SECOND, &[], samples_per_second);
+}

@@ -1,0 +1,156 @@
+//! The `/metrics` endpoint: a minimal HTTP/1.1 responder on its own port, enough for
+//! Prometheus scrapes and Kubernetes probes (`/healthz`). Every connection gets one answer and
+//! is closed, so there is no keep-alive state to get wrong.
+
+use std::net::SocketAddr;
+use std::sync::Arc;
+use std::time::Duration;
+
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use tokio::net::{TcpListener, TcpStream};
+
+use crate::metrics::Registry;
+
+/// The longest request head accepted; scrapers send a few hundred bytes.
+const MAX_REQUEST_BYTES: usize = 8 * 1024;
+
+/// Why the endpoint could not start.
+#[derive(Debug, thiserror::Error)]
+pub enum HttpError {
+    /// The address could not be bound.
+    #[error("cannot listen for /metrics on {address}: {source}")]
+    Bind {
+        /// What was asked for.
+        address: String,
+        /// Why.
+        source: std::io::Error,
+    },
+}
+
+/// Binds `address` and serves `registry` there until the process ends. Returns the bound
+/// address (useful with port 0).
+pub async fn serve(address: &str, registry: Arc<Registry>) -> Result<SocketAddr, HttpError> {
+    let bind_error = |source| HttpError::Bind {
+        address: address.to_string(),
+        source,
+    };
+    let listener = TcpListener::bind(address).await.map_err(bind_error)?;
+    let bound = listener.local_addr().map_err(bind_error)?;
+    tokio::spawn(async move {
+        loop {
+            match listener.accept().await {
+                Ok((stream, peer)) => {
+                    let registry = Arc::clone(&registry);
+                    tokio::spawn(async move {
+                        if let Err(error) = answer(stream, &registry).await {
+                            tracing::debug!(%peer, %error, "metrics request failed");
+                        }
+                    });
+                }
+                Err(error) => {
+                    tracing::warn!(%error, "metrics listener failed to accept");
+                    tokio::time::sleep(Duration::from_millis(100)).await;
+                }
+            }
+        }
+    });
+    tracing::info!(address = %bound, "serving /metrics");
+    Ok(bound)
+}
+
+async fn answer(mut stream: TcpStream, registry: &Registry) -> std::io::Result<()> {
+    let mut head = Vec::with_capacity(512);
+    let mut buffer = [0u8; 1024];
+    let read = async {
+        while !head.windows(4).any(|w| w == b"\r\n\r\n") && head.len() < MAX_REQUEST_BYTES {
+            let n = stream.read(&mut buffer).await?;
+            if n == 0 {
+                break;
+            }
+            head.extend_from_slice(&buffer[..n]);
+        }
+        std::io::Result::Ok(())
+    };
+    tokio::time::timeout(Duration::from_secs(5), read)
+        .await
+        .map_err(|_| std::io::Error::new(std::io::ErrorKind::TimedOut, "slow request"))??;
+    let request_line = head.split(|&b| b == b'\n').next().unwrap_or_default();
+    let request_line = String::from_utf8_lossy(request_line);
+    let mut parts = request_line.split_whitespace();
+    let (method, path) = (parts.next().unwrap_or(""), parts.next().unwrap_or(""));
+    let path = path.split('?').next().unwrap_or("");
+    let (status, content_type, body) = match (method, path) {
+        ("GET", "/metrics") => (
+            "200 OK",
+            "text/plain; version=0.0.4; charset=utf-8",
+            registry.render(),
+        ),
+        ("GET", "/healthz") => ("200 OK", "text/plain; charset=utf-8", "ok\n".to_string()),
+        ("GET", _) => (
+            "404 Not Found",
+            "text/plain; charset=utf-8",
+            "try /metrics\n".to_string(),
+        ),
+        _ => (
+            "405 Method Not Allowed",
+            "text/plain; charset=utf-8",
+            "GET only\n".to_string(),
+        ),
+    };
+    let response = format!(
+        "HTTP/1.1 {status}\r\nContent-Type: {content_type}\r\nContent-Length: {}\r\nConnection: close\r\n\r\n{body}",
+        body.len()
+    );
+    stream.write_all(response.as_bytes()).await?;
+    stream.shutdown().await
+}
+
+/// Fetches `http://{address}{path}` and returns the status code and body: what tests and the
+/// local runner use to scrape, without an HTTP client dependency.
+pub async fn get(address: SocketAddr, path: &str) -> std::io::Result<(u16, String)> {
+    let mut stream = TcpStream::connect(address).await?;
+    let request = format!("GET {path} HTTP/1.1\r\nHost: {address}\r\nConnection: close\r\n\r\n");
+    stream.write_all(request.as_bytes()).await?;
+    let mut response = Vec::new();
+    stream.read_to_end(&mut response).await?;
+    let text = String::from_utf8_lossy(&response).into_owned();
+    let (head, body) = text.split_once("\r\n\r\n").unwrap_or((&text, ""));
+    let status = head
+        .split_whitespace()
+        .nth(1)
+        .and_then(|code| code.parse().ok())
+        .ok_or_else(|| std::io::Error::new(std::io::ErrorKind::InvalidData, "no status line"))?;
+    Ok((status, body.to_string()))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::metrics::Metric;
+
+    #[tokio::test]
+    async fn serves_metrics_and_health_and_refuses_the_rest() {
+        let registry = Arc::new(Registry::new());
+        registry.set(&Metric::gauge("xfactor_step", "Steps."), &[], 12.0);
+        let address = serve("127.0.0.1:0", Arc::clone(&registry))
+            .await
+            .expect("bind");
+        let (status, body) = get(address, "/metrics").await.expect("scrape");
+        assert_eq!(status, 200);
+        assert!(body.contains("xfactor_step 12\n"), "{body}");
+        assert_eq!(get(address, "/healthz").await.expect("probe").0, 200);
+        assert_eq!(get(address, "/nope").await.expect("404").0, 404);
+    }
+
+    #[tokio::test]
+    async fn a_taken_port_is_named() {
+        let registry = Arc::new(Registry::new());
+        let address = serve("127.0.0.1:0", Arc::clone(&registry))
+            .await
+            .expect("bind");
+        let error = serve(&address.to_string(), registry)
+            .await
+            .expect_err("port taken");
+        assert!(error.to_string().contains(&address.to_string()), "{error}");
+    }
+}

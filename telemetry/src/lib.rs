@@ -1,0 +1,11 @@
+//! `telemetry`: how the coordinator and the workers tell operators what they are doing.
+//!
+//! Prometheus series in a [`metrics::Registry`], served as text on `/metrics` by
+//! [`http::serve`], and loss curves written as CSV and drawn to PNG by [`curves`]. It knows
+//! nothing about the model or the job protocol: callers name their series.
+
+pub mod curves;
+pub mod http;
+pub mod metrics;
+
+pub use metrics::{Metric, Registry};

@@ -1,0 +1,194 @@
+//! A small Prometheus registry: gauges and counters with labels, rendered in the text
+//! exposition format (version 0.0.4). Hand-written because the processes export a few dozen
+//! series and a client library would add a dependency tree for no gain.
+
+use std::collections::BTreeMap;
+use std::fmt::Write;
+use std::sync::{Mutex, PoisonError};
+
+/// Whether a series can go down (gauge) or only up (counter).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Kind {
+    /// A value that is set: step, loss, learning rate.
+    Gauge,
+    /// A running total: heartbeats, restarts, skipped frames.
+    Counter,
+}
+
+/// A series family: its name, help text and kind. Declared as constants by the processes that
+/// export them, so the name is spelled once.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Metric {
+    /// Prometheus name, e.g. `xfactor_step`.
+    pub name: &'static str,
+    /// One line for `# HELP`.
+    pub help: &'static str,
+    /// Gauge or counter.
+    pub kind: Kind,
+}
+
+impl Metric {
+    /// A gauge family.
+    pub const fn gauge(name: &'static str, help: &'static str) -> Self {
+        Self {
+            name,
+            help,
+            kind: Kind::Gauge,
+        }
+    }
+
+    /// A counter family.
+    pub const fn counter(name: &'static str, help: &'static str) -> Self {
+        Self {
+            name,
+            help,
+            kind: Kind::Counter,
+        }
+    }
+}
+
+struct Family {
+    metric: Metric,
+    series: BTreeMap<String, f64>,
+}
+
+/// The current value of every series a process exports. Cheap to update from any thread.
+#[derive(Default)]
+pub struct Registry {
+    families: Mutex<BTreeMap<&'static str, Family>>,
+}
+
+impl Registry {
+    /// An empty registry.
+    pub fn new() -> Self {
+        Self::default()
+    }
+
+    fn update(&self, metric: &Metric, labels: &[(&str, &str)], apply: impl FnOnce(&mut f64)) {
+        let mut families = self.families.lock().unwrap_or_else(PoisonError::into_inner);
+        let family = families.entry(metric.name).or_insert_with(|| Family {
+            metric: *metric,
+            series: BTreeMap::new(),
+        });
+        apply(family.series.entry(render_labels(labels)).or_insert(0.0));
+    }
+
+    /// Sets a gauge.
+    pub fn set(&self, metric: &Metric, labels: &[(&str, &str)], value: f64) {
+        self.update(metric, labels, |slot| *slot = value);
+    }
+
+    /// Adds `delta` (non-negative) to a counter.
+    pub fn add(&self, metric: &Metric, labels: &[(&str, &str)], delta: f64) {
+        self.update(metric, labels, |slot| *slot += delta.max(0.0));
+    }
+
+    /// Raises a counter to `total` when a peer reports a running total (never lowers it, so
+    /// a restarted peer does not make the counter go backwards).
+    pub fn raise_to(&self, metric: &Metric, labels: &[(&str, &str)], total: f64) {
+        self.update(metric, labels, |slot| *slot = slot.max(total));
+    }
+
+    /// A series' current value, if it was ever set.
+    pub fn value(&self, metric: &Metric, labels: &[(&str, &str)]) -> Option<f64> {
+        let families = self.families.lock().unwrap_or_else(PoisonError::into_inner);
+        families
+            .get(metric.name)
+            .and_then(|family| family.series.get(&render_labels(labels)).copied())
+    }
+
+    /// Every series in the Prometheus text exposition format.
+    pub fn render(&self) -> String {
+        let families = self.families.lock().unwrap_or_else(PoisonError::into_inner);
+        let mut text = String::new();
+        for family in families.values() {
+            let kind = match family.metric.kind {
+                Kind::Gauge => "gauge",
+                Kind::Counter => "counter",
+            };
+            let _ = writeln!(text, "# HELP {} {}", family.metric.name, family.metric.help);
+            let _ = writeln!(text, "# TYPE {} {kind}", family.metric.name);
+            for (labels, value) in &family.series {
+                let _ = writeln!(
+                    text,
+                    "{}{labels} {}",
+                    family.metric.name,
+                    format_value(*value)
+                );
+            }
+        }
+        text
+    }
+}
+
+fn render_labels(labels: &[(&str, &str)]) -> String {
+    if labels.is_empty() {
+        return String::new();
+    }
+    let pairs: Vec<String> = labels
+        .iter()
+        .map(|(key, value)| {
+            let escaped = value
+                .replace('\\', "\\\\")
+                .replace('"', "\\\"")
+                .replace('\n', "\\n");
+            format!("{key}=\"{escaped}\"")
+        })
+        .collect();
+    format!("{{{}}}", pairs.join(","))
+}
+
+fn format_value(value: f64) -> String {
+    if value.is_nan() {
+        "NaN".into()
+    } else if value.is_infinite() {
+        if value > 0.0 { "+Inf" } else { "-Inf" }.into()
+    } else {
+        format!("{value}")
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    const STEP: Metric = Metric::gauge("xfactor_step", "Steps done.");
+    const BEATS: Metric = Metric::counter("xfactor_heartbeats_total", "Heartbeats sent.");
+
+    #[test]
+    fn renders_help_type_and_labelled_series() {
+        let registry = Registry::new();
+        registry.set(&STEP, &[("stage", "1")], 3.0);
+        registry.set(&STEP, &[("stage", "1")], 4.0);
+        registry.add(&BEATS, &[], 2.0);
+        registry.add(&BEATS, &[], 1.0);
+        registry.add(&BEATS, &[], -5.0);
+        let text = registry.render();
+        assert!(text.contains("# TYPE xfactor_step gauge\n"), "{text}");
+        assert!(text.contains("xfactor_step{stage=\"1\"} 4\n"), "{text}");
+        assert!(
+            text.contains("# TYPE xfactor_heartbeats_total counter\n"),
+            "{text}"
+        );
+        assert!(text.contains("xfactor_heartbeats_total 3\n"), "{text}");
+    }
+
+    #[test]
+    fn counters_raised_to_a_total_never_go_down() {
+        let registry = Registry::new();
+        registry.raise_to(&BEATS, &[("rank", "0")], 7.0);
+        registry.raise_to(&BEATS, &[("rank", "0")], 2.0);
+        assert_eq!(registry.value(&BEATS, &[("rank", "0")]), Some(7.0));
+    }
+
+    #[test]
+    fn label_values_are_escaped() {
+        let registry = Registry::new();
+        registry.set(&STEP, &[("job", "a\"b\\c")], f64::NAN);
+        assert!(
+            registry
+                .render()
+                .contains("xfactor_step{job=\"a\\\"b\\\\c\"} NaN")
+        );
+    }
+}
