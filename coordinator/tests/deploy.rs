@@ -1,0 +1,192 @@
+//! `deploy/` checked against the code: every example cluster YAML goes through the real
+//! parser, the Kubernetes ConfigMap source is the example, every flag the manifests and units
+//! pass exists, and the Dockerfile builds the binaries the README builds.
+
+use std::collections::BTreeSet;
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+use coordinator::config::ClusterConfig;
+
+fn repository() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("..")
+}
+
+fn read(relative: &str) -> String {
+    std::fs::read_to_string(repository().join(relative))
+        .unwrap_or_else(|e| panic!("{relative}: {e}"))
+}
+
+#[test]
+fn every_example_cluster_yaml_parses_and_validates() {
+    let examples = repository().join("deploy/examples");
+    let mut parsed = 0;
+    for entry in std::fs::read_dir(&examples).unwrap() {
+        let path = entry.unwrap().path();
+        if path.extension().is_some_and(|e| e == "yaml") {
+            let config = ClusterConfig::from_file(&path)
+                .unwrap_or_else(|e| panic!("{}: {e}", path.display()));
+            config
+                .model_config()
+                .unwrap_or_else(|e| panic!("{}: model: {e}", path.display()));
+            parsed += 1;
+        }
+    }
+    assert!(
+        parsed >= 3,
+        "expected local, two-hosts and kubernetes examples"
+    );
+}
+
+#[test]
+fn the_kubernetes_config_map_is_the_kubernetes_example() {
+    assert_eq!(
+        read("deploy/k8s/cluster.yaml"),
+        read("deploy/examples/kubernetes.yaml"),
+        "deploy/k8s/cluster.yaml must be a copy of deploy/examples/kubernetes.yaml"
+    );
+}
+
+/// The `--flags` a binary's usage text lists (it prints it on an unknown flag).
+fn usage_flags(binary: &str, arguments: &[&str]) -> BTreeSet<String> {
+    let output = Command::new(binary)
+        .args(arguments)
+        .arg("--no-such-flag")
+        .output()
+        .unwrap();
+    flags_in(&String::from_utf8_lossy(&output.stderr))
+}
+
+fn flags_in(text: &str) -> BTreeSet<String> {
+    text.split(|c: char| !(c.is_ascii_alphanumeric() || c == '-'))
+        .filter(|word| {
+            word.starts_with("--") && word[2..].starts_with(|c: char| c.is_ascii_lowercase())
+        })
+        .map(str::to_string)
+        .collect()
+}
+
+fn flags_of(files: &[&str], marker: &str) -> BTreeSet<String> {
+    let mut flags = BTreeSet::new();
+    for file in files {
+        let text = read(file);
+        let relevant: Vec<&str> = text
+            .lines()
+            .filter(|line| !line.trim_start().starts_with('#'))
+            .collect();
+        let joined = relevant.join("\n");
+        if joined.contains(marker) {
+            flags.extend(flags_in(&joined));
+        }
+    }
+    flags
+}
+
+#[test]
+fn manifests_and_units_pass_only_flags_the_binaries_know() {
+    let folder = Path::new(env!("CARGO_BIN_EXE_xfactor-coordinator"))
+        .parent()
+        .unwrap()
+        .to_path_buf();
+    let coordinator = usage_flags(env!("CARGO_BIN_EXE_xfactor-coordinator"), &["run"]);
+    let worker = usage_flags(&folder.join("xfactor-worker").display().to_string(), &[]);
+    assert!(coordinator.contains("--metrics-address") && worker.contains("--coordinator"));
+    for (files, known, name) in [
+        (
+            [
+                "deploy/k8s/coordinator.yaml",
+                "deploy/systemd/xfactor-coordinator.service",
+            ],
+            &coordinator,
+            "xfactor-coordinator",
+        ),
+        (
+            [
+                "deploy/k8s/worker.yaml",
+                "deploy/systemd/xfactor-worker.service",
+            ],
+            &worker,
+            "xfactor-worker",
+        ),
+    ] {
+        let used = flags_of(&files, name);
+        assert!(!used.is_empty(), "no {name} flags found in {files:?}");
+        let unknown: Vec<&String> = used.difference(known).collect();
+        assert!(
+            unknown.is_empty(),
+            "{files:?} pass flags {name} does not know: {unknown:?}"
+        );
+    }
+}
+
+#[test]
+fn the_dockerfile_is_well_formed_and_builds_the_readme_binaries() {
+    let dockerfile = read("deploy/docker/Dockerfile");
+    let instructions = [
+        "FROM",
+        "RUN",
+        "CMD",
+        "LABEL",
+        "EXPOSE",
+        "ENV",
+        "ADD",
+        "COPY",
+        "ENTRYPOINT",
+        "VOLUME",
+        "USER",
+        "WORKDIR",
+        "ARG",
+        "ONBUILD",
+        "STOPSIGNAL",
+        "HEALTHCHECK",
+        "SHELL",
+    ];
+    let mut logical = String::new();
+    let mut stages = Vec::new();
+    for line in dockerfile.lines() {
+        let trimmed = line.trim();
+        if logical.is_empty() && (trimmed.is_empty() || trimmed.starts_with('#')) {
+            continue;
+        }
+        if logical.is_empty() {
+            let keyword = trimmed.split_whitespace().next().unwrap_or_default();
+            assert!(
+                instructions.contains(&keyword.to_ascii_uppercase().as_str()),
+                "not a Dockerfile instruction: {line}"
+            );
+            if keyword == "FROM" {
+                stages.push(trimmed.to_string());
+            }
+        }
+        logical.push_str(trimmed.trim_end_matches('\\'));
+        if !trimmed.ends_with('\\') {
+            logical.clear();
+        }
+    }
+    assert!(
+        logical.is_empty(),
+        "the Dockerfile ends inside a continued line"
+    );
+    assert!(
+        stages.len() >= 3,
+        "builder, runtime and gpu stages: {stages:?}"
+    );
+    let run_script = read("scripts/run.sh");
+    let readme_build = run_script
+        .lines()
+        .find(|l| l.starts_with("cargo build"))
+        .expect("scripts/run.sh builds with cargo");
+    let docker_build = readme_build.replacen("cargo build", "cargo build --release --locked", 1);
+    let docker_build =
+        docker_build.replacen("--release --locked --release", "--release --locked", 1);
+    assert!(
+        dockerfile.contains(&docker_build),
+        "the Dockerfile must run `{docker_build}` like scripts/run.sh"
+    );
+    for binary in ["xfactor-coordinator", "xfactor-worker", "xfactor-local"] {
+        assert!(
+            dockerfile.contains(&format!("target/release/{binary}")),
+            "{binary} not copied"
+        );
+    }
+}
