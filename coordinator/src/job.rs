@@ -73,6 +73,10 @@ pub struct StepRecord {
     pub learning_rate: f64,
     /// Parameter checksum by rank, where computed.
     pub checksums: BTreeMap<u32, u32>,
+    /// Wall time of the step: the slowest rank's.
+    pub step_s: f64,
+    /// Time of the step's all-reduce: the slowest rank's.
+    pub allreduce_s: f64,
 }
 
 /// The job report written when the job ends.
@@ -141,15 +145,15 @@ pub struct JobState {
     last_loss: f32,
 }
 
-/// Where this coordinator's worker ids and generation numbers start: the start time in
-/// seconds times a million. A restarted coordinator thus never hands out an id or a generation
-/// that workers of its predecessor still hold, so a stale heartbeat cannot pass for a new
-/// member and a stale collective inbox cannot be mistaken for a new generation's.
+/// Where this coordinator's worker ids and generation numbers start: its start time in
+/// microseconds since the epoch. Both grow by one per registration or re-formation, far slower
+/// than the clock, so a restarted coordinator never hands out an id or a generation that the
+/// workers of its predecessor still hold: a stale heartbeat cannot pass for a new member, and
+/// a stale collective inbox cannot be taken for a new generation's.
 fn incarnation_base() -> u64 {
-    let seconds = std::time::SystemTime::now()
+    std::time::SystemTime::now()
         .duration_since(std::time::UNIX_EPOCH)
-        .map_or(0, |d| d.as_secs());
-    seconds * 1_000_000
+        .map_or(0, |d| d.as_micros() as u64)
 }
 
 impl JobState {
@@ -317,6 +321,8 @@ impl JobState {
                 &mut self.report.steps[last]
             }
         };
+        record.step_s = record.step_s.max(report.step_s);
+        record.allreduce_s = record.allreduce_s.max(report.allreduce_s);
         if rank == 0 {
             record.loss = loss.total;
             record.learning_rate = loss.learning_rate;

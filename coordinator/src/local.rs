@@ -28,6 +28,8 @@ pub struct LocalJob {
     pub frames: usize,
     /// Training resolution.
     pub image_size: usize,
+    /// Model preset (`tiny`, `benchmark`, `paper`, ...; see the cluster YAML's `model.preset`).
+    pub preset: String,
     /// Stage-1 steps.
     pub stage1_steps: u64,
     /// Stage-2 steps.
@@ -62,6 +64,7 @@ impl LocalJob {
             trajectories: 4,
             frames: 12,
             image_size: 32,
+            preset: "tiny".into(),
             stage1_steps: 20,
             stage2_steps: 10,
             global_batch: 8,
@@ -129,8 +132,8 @@ impl LocalJob {
         let _ = writeln!(yaml, "auth:\n  token: {}", self.token());
         let _ = writeln!(
             yaml,
-            "model:\n  preset: tiny\n  image_size: {}",
-            self.image_size
+            "model:\n  preset: {}\n  image_size: {}",
+            self.preset, self.image_size
         );
         if self.in_memory {
             let _ = writeln!(

@@ -12,8 +12,9 @@ use crate::collective::{CollectiveService, Link, Ring, spawn_server};
 /// Token of the benchmark's private ring.
 const BENCH_TOKEN: &str = "allreduce-bench";
 
-/// Runs rank `--rank` of the ring `--peers`; rank 0 prints `size_mb=.. seconds=..` per size
-/// (the median of `--repeats` runs after one warm-up).
+/// Runs rank `--rank` of the ring `--peers`; rank 0 prints `size_mb=.. seconds=..` per size:
+/// the median of at least `--repeats` runs (more for small sizes) after one warm-up, on a
+/// runtime of `--threads` I/O threads (1, as the worker daemon uses).
 pub fn run_rank(flags: &Flags) -> anyhow::Result<()> {
     let rank: usize = flags.require("rank").map_err(anyhow::Error::msg)?.parse()?;
     let peers: Vec<String> = flags
@@ -57,8 +58,10 @@ pub fn run_rank(flags: &Flags) -> anyhow::Result<()> {
             let mut buffer: Vec<f32> = (0..values)
                 .map(|i| (i % 1000) as f32 + rank as f32)
                 .collect();
+            // Small sizes are latency-bound and noisy: time at least 64 MB's worth of them.
+            let runs = repeats.max((64.0 / size).ceil() as usize).min(500);
             let mut times = Vec::new();
-            for run in 0..=repeats {
+            for run in 0..=runs {
                 let stats = ring.all_reduce(&mut buffer).await?;
                 if run > 0 {
                     times.push(stats.seconds);
@@ -67,7 +70,7 @@ pub fn run_rank(flags: &Flags) -> anyhow::Result<()> {
             times.sort_by(f64::total_cmp);
             let median = times[times.len() / 2];
             if rank == 0 {
-                println!("size_mb={size} seconds={median:.6}");
+                println!("size_mb={size} seconds={median:.6} runs={runs}");
             }
         }
         anyhow::Ok(())

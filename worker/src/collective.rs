@@ -70,6 +70,9 @@ pub enum CollectiveError {
     /// The coordinator abandoned the generation.
     #[error("generation abandoned by the coordinator")]
     Cancelled,
+    /// The task running the all-reduce died (a panic); the ring is gone with it.
+    #[error("the all-reduce task died: {0}")]
+    Aborted(String),
     /// The TLS settings could not be applied to the collective server.
     #[error("collective TLS: {0}")]
     Tls(String),
@@ -369,6 +372,23 @@ impl Ring {
             _ = cancel.wait_for(|cancelled| *cancelled) => Err(CollectiveError::Cancelled),
             () = tokio::time::sleep(timeout) => Err(CollectiveError::Timeout { rank: left, seconds: timeout.as_secs_f64() }),
         }
+    }
+
+    /// [`Ring::all_reduce`] as a task on `runtime`'s worker threads, where the streams' I/O
+    /// runs, instead of on the calling thread: chunks then go from socket to reduction without
+    /// a hand-off between threads. Blocking; returns the ring and the summed values.
+    pub fn all_reduce_on(
+        mut self,
+        runtime: &tokio::runtime::Runtime,
+        mut values: Vec<f32>,
+    ) -> Result<(Self, Vec<f32>, ReduceStats), CollectiveError> {
+        let task = runtime.spawn(async move {
+            let stats = self.all_reduce(&mut values).await;
+            stats.map(|stats| (self, values, stats))
+        });
+        runtime
+            .block_on(task)
+            .map_err(|e| CollectiveError::Aborted(e.to_string()))?
     }
 
     /// Sums `values` element-wise across all ranks, in place; every rank ends with the same sum.

@@ -16,14 +16,25 @@ use proto::v1::coordinator_client::CoordinatorClient;
 use trainer_core::cli::{Flags, init_logging};
 
 const USAGE: &str =
-    "usage: xfactor-local [--dir DIR] [--workers N] [--stage1-steps N] [--stage2-steps N]";
+    "usage: xfactor-local [--dir DIR] [--workers N] [--stage1-steps N] [--stage2-steps N]
+                     [--preset tiny|benchmark|paper] [--image-size PX]
+                     [--global-batch N] [--micro-batch N]";
 
 fn main() -> anyhow::Result<()> {
     let args: Vec<String> = std::env::args().skip(1).collect();
     let flags = Flags::parse(
         &args,
         &[],
-        &["dir", "workers", "stage1-steps", "stage2-steps"],
+        &[
+            "dir",
+            "workers",
+            "stage1-steps",
+            "stage2-steps",
+            "preset",
+            "image-size",
+            "global-batch",
+            "micro-batch",
+        ],
     )
     .map_err(|e| anyhow::anyhow!("{e}\n{USAGE}"))?;
     init_logging(None).map_err(anyhow::Error::msg)?;
@@ -37,6 +48,12 @@ fn main() -> anyhow::Result<()> {
     job.workers = number("workers", 2)? as usize;
     job.stage1_steps = number("stage1-steps", job.stage1_steps)?;
     job.stage2_steps = number("stage2-steps", job.stage2_steps)?;
+    job.global_batch = number("global-batch", job.global_batch)?;
+    job.micro_batch = number("micro-batch", job.micro_batch)?;
+    job.image_size = number("image-size", job.image_size as u64)? as usize;
+    if let Some(preset) = flags.get("preset") {
+        job.preset = preset.to_string();
+    }
     if job.checkpoint_dir().exists() {
         std::fs::remove_dir_all(job.checkpoint_dir())?;
     }
@@ -79,27 +96,36 @@ fn main() -> anyhow::Result<()> {
         );
     }
     let report: serde_json::Value = serde_json::from_slice(&std::fs::read(job.report_path())?)?;
-    let steps = report["steps"].as_array().map_or(0, Vec::len);
-    let last_loss = |stage: u64| {
-        report["steps"]
-            .as_array()
-            .and_then(|s| s.iter().rev().find(|r| r["stage"] == stage))
-            .map_or(f64::NAN, |r| r["loss"].as_f64().unwrap_or(f64::NAN))
+    let steps = report["steps"].as_array().cloned().unwrap_or_default();
+    let stage = |number: u64| -> Vec<&serde_json::Value> {
+        steps.iter().filter(|r| r["stage"] == number).collect()
     };
-    let first_loss = |stage: u64| {
-        report["steps"]
-            .as_array()
-            .and_then(|s| s.iter().find(|r| r["stage"] == stage))
-            .map_or(f64::NAN, |r| r["loss"].as_f64().unwrap_or(f64::NAN))
+    let loss = |record: Option<&&serde_json::Value>| {
+        record.map_or(f64::NAN, |r| r["loss"].as_f64().unwrap_or(f64::NAN))
     };
+    let mut figures = Vec::new();
+    for number in [1, 2] {
+        let records = stage(number);
+        let timed = StepTimes::of(&records);
+        figures.push(format!(
+            "stage{number}_loss={:.4}->{:.4} stage{number}_step_s={:.4} stage{number}_allreduce_s={:.4} stage{number}_comm_share={:.3}",
+            loss(records.first()),
+            loss(records.last()),
+            timed.step_s,
+            timed.allreduce_s,
+            timed.allreduce_s / timed.step_s
+        ));
+    }
     println!(
-        "outcome={} workers={} steps={steps} stage1_loss={:.4}->{:.4} stage2_loss={:.4}->{:.4} restarts={} checksum_mismatches={} seconds={:.1} report={}",
+        "outcome={} workers={} preset={} image_size={} global_batch={} micro_batch={} steps={} {} restarts={} checksum_mismatches={} seconds={:.1} report={}",
         report["outcome"].as_str().unwrap_or("?"),
         job.workers,
-        first_loss(1),
-        last_loss(1),
-        first_loss(2),
-        last_loss(2),
+        job.preset,
+        job.image_size,
+        job.global_batch,
+        job.micro_batch,
+        steps.len(),
+        figures.join(" "),
         report["restarts"],
         report["checksum_mismatches"].as_array().map_or(0, Vec::len),
         started.elapsed().as_secs_f64(),
@@ -136,4 +162,29 @@ async fn draw_progress(job: LocalJob, started: Instant, done: Arc<AtomicBool>) {
         }
     }
     eprintln!();
+}
+
+/// Mean step and all-reduce times of a stage, leaving out its first step (model set-up and
+/// warm-up) when there are others.
+struct StepTimes {
+    step_s: f64,
+    allreduce_s: f64,
+}
+
+impl StepTimes {
+    fn of(records: &[&serde_json::Value]) -> Self {
+        let timed = if records.len() > 1 {
+            &records[1..]
+        } else {
+            records
+        };
+        let mean = |key: &str| {
+            let values: Vec<f64> = timed.iter().filter_map(|r| r[key].as_f64()).collect();
+            values.iter().sum::<f64>() / values.len().max(1) as f64
+        };
+        Self {
+            step_s: mean("step_s"),
+            allreduce_s: mean("allreduce_s"),
+        }
+    }
 }

@@ -1,0 +1,10 @@
+#!/usr/bin/env bash
+# The all-reduce benchmark (issue 5): builds the coordinator and worker binaries it starts, then
+# prints one key=value line (algbw_gbs_1mb= ... algbw_gbs_100mb=, and step_s_1worker= /
+# step_s_2workers= / comm_share_2workers= for the benchmark model). Extra arguments go to the
+# benchmark (e.g. --repeats 9 --model-steps 10).
+set -euo pipefail
+cd "$(dirname "$0")/.."
+source scripts/env.sh
+cargo build --release -p coordinator -p worker --bins
+cargo bench -p worker --bench allreduce -- "$@"
