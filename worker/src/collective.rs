@@ -331,9 +331,9 @@ impl Ring {
         begin: usize,
         values: &[f32],
     ) -> Result<(), CollectiveError> {
-        let mut bytes = Vec::with_capacity(values.len() * 4);
-        for value in values {
-            bytes.extend_from_slice(&value.to_le_bytes());
+        let mut bytes = vec![0u8; values.len() * 4];
+        for (raw, value) in bytes.chunks_exact_mut(4).zip(values) {
+            raw.copy_from_slice(&value.to_le_bytes());
         }
         let chunk = Chunk {
             generation: self.generation,
