@@ -457,7 +457,7 @@ fn train_generation(
     }
     let schedule = Schedule {
         start_step: trainer.step(),
-        first_sample: first as u64,
+        first_sample: first,
         global_batch: count,
         micro_batch: train.micro_batch,
     };

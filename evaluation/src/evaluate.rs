@@ -1,0 +1,520 @@
+//! The `evaluate` stage: reconstruction (autoencoding), TPS and the pose probe of one checkpoint
+//! on generated scenes, next to the same numbers for an untrained model of the same shape,
+//! written as `report.json`, `report.md` and PNG figures.
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use burn::tensor::{Device, Tensor, TensorData};
+use serde::{Deserialize, Serialize};
+use trainer_core::augment::Image;
+use trainer_core::lpips::Lpips;
+use trainer_core::scenes::SceneConfig;
+use trainer_core::synthetic::SyntheticDataset;
+use trainer_core::{XFactor, XFactorConfig, checkpoint};
+
+use crate::error::{EvalError, io_error};
+use crate::figures::{save_camera_paths, save_grid};
+use crate::inference::{pose_latents, render_targets, transfer};
+use crate::metrics::{CameraMetrics, psnr, ssim};
+use crate::oracle::{
+    ClassicalOracle, ClassicalSettings, ExternalOracle, GroundTruthOracle, OracleSpec, PoseOracle,
+};
+use crate::probe::{ProbeReport, ProbeSequence, ProbeSpec, run_probe};
+use crate::tps::{TpsReport, draw_pairs, target_frames, transferability};
+
+/// Pairs drawn in the render-grid figure.
+const GRID_PAIRS: usize = 3;
+
+/// What to evaluate: small enough to travel as JSON in a job assignment.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct EvaluationSpec {
+    /// Seed of the generated scenes, trajectories, TPS pairs and probe batches.
+    pub seed: u64,
+    /// Generated scenes (the last `probe.test_scenes` are held out from probe training).
+    pub scenes: u64,
+    /// Camera trajectories, each rendered in every scene.
+    pub trajectories: u64,
+    /// Frames per trajectory.
+    pub frames: usize,
+    /// Transfers scored by TPS.
+    pub tps_pairs: usize,
+    /// Equally spaced target frames per transfer (the paper: 5).
+    pub tps_frames: usize,
+    /// Sequences autoencoded for PSNR / SSIM / LPIPS.
+    pub reconstruction_sequences: usize,
+    /// The pose probe.
+    pub probe: ProbeSpec,
+    /// The pose oracle of TPS.
+    pub oracle: OracleSpec,
+    /// LPIPS weights (safetensors, `tools/convert_lpips_weights.py`); LPIPS is skipped without.
+    pub lpips_weights: Option<PathBuf>,
+    /// Also evaluate an untrained model of the same configuration, as the baseline.
+    pub compare_untrained: bool,
+}
+
+impl Default for EvaluationSpec {
+    /// 6 scenes x 8 trajectories x 8 frames, 32 TPS pairs of 5 frames, 8 reconstructed
+    /// sequences, the default probe, the ground-truth oracle, an untrained baseline.
+    fn default() -> Self {
+        Self {
+            seed: 0,
+            scenes: 6,
+            trajectories: 8,
+            frames: 8,
+            tps_pairs: 32,
+            tps_frames: 5,
+            reconstruction_sequences: 8,
+            probe: ProbeSpec::default(),
+            oracle: OracleSpec::GroundTruth,
+            lpips_weights: None,
+            compare_untrained: true,
+        }
+    }
+}
+
+/// Autoencoding quality: targets rendered with poses read from the same video.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ReconstructionReport {
+    /// Frames rendered.
+    pub frames: usize,
+    /// Mean PSNR, dB.
+    pub psnr: f64,
+    /// Mean SSIM.
+    pub ssim: f64,
+    /// Mean LPIPS, when weights were given.
+    pub lpips: Option<f64>,
+}
+
+/// Every number for one model.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ModelReport {
+    /// Autoencoding.
+    pub reconstruction: ReconstructionReport,
+    /// Transferability.
+    pub tps: TpsReport,
+    /// Pose probe.
+    pub probe: ProbeReport,
+}
+
+/// The whole evaluation, as written to `report.json`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct EvaluationReport {
+    /// Checkpoint evaluated.
+    pub checkpoint: PathBuf,
+    /// The spec it ran with.
+    pub spec: EvaluationSpec,
+    /// The model's configuration.
+    pub model: XFactorConfig,
+    /// The checkpoint's numbers.
+    pub trained: ModelReport,
+    /// An untrained model's numbers, when asked for.
+    pub untrained: Option<ModelReport>,
+    /// Figures written beside the report, relative to it.
+    pub figures: Vec<String>,
+    /// Wall time of the evaluation.
+    pub seconds: f64,
+}
+
+fn oracle_for(
+    spec: &OracleSpec,
+    dataset: &SyntheticDataset,
+    scene: &SceneConfig,
+) -> Box<dyn PoseOracle> {
+    match spec {
+        OracleSpec::GroundTruth => Box::new(GroundTruthOracle::from_dataset(dataset)),
+        OracleSpec::Classical => Box::new(ClassicalOracle::new(ClassicalSettings {
+            fov_degrees: scene.fov_degrees,
+            ..ClassicalSettings::default()
+        })),
+        OracleSpec::External { program, args } => Box::new(ExternalOracle::new(program, args)),
+    }
+}
+
+/// Everything shared by the trained and untrained runs.
+struct Context<'a> {
+    spec: &'a EvaluationSpec,
+    dataset: SyntheticDataset,
+    oracle: Box<dyn PoseOracle>,
+    lpips: Option<Lpips>,
+    device: Device,
+    out_dir: &'a Path,
+}
+
+fn reconstruction(
+    model: &XFactor,
+    context: &Context<'_>,
+) -> Result<(ReconstructionReport, Vec<Vec<Image>>), EvalError> {
+    let (mut psnrs, mut ssims, mut lpipses) = (Vec::new(), Vec::new(), Vec::new());
+    let mut grid = Vec::new();
+    for sequence in context
+        .dataset
+        .sequences
+        .iter()
+        .take(context.spec.reconstruction_sequences)
+    {
+        let first = &sequence.frames[0];
+        let targets = &sequence.frames[1..];
+        let latents = pose_latents(model, first, targets, &context.device)?;
+        let zero = vec![0.0; latents.first().map_or(0, Vec::len)];
+        let renders = render_targets(
+            model,
+            std::slice::from_ref(first),
+            &[zero],
+            &latents,
+            &context.device,
+        )?;
+        for (render, target) in renders.iter().zip(targets) {
+            psnrs.push(psnr(render, target)?);
+            ssims.push(ssim(render, target)?);
+        }
+        if let Some(lpips) = &context.lpips {
+            let upload = |images: &[Image]| {
+                let values: Vec<f32> = images
+                    .iter()
+                    .flat_map(|i| i.pixels.iter().copied())
+                    .collect();
+                Tensor::<4>::from_data(
+                    TensorData::new(values, [images.len(), first.height, first.width, 3]),
+                    &context.device,
+                )
+            };
+            let distances = lpips
+                .distance(upload(&renders), upload(targets))
+                .try_into_vec_as::<f32>()
+                .map_err(|e| EvalError::Tensor(format!("{e:?}")))?;
+            lpipses.extend(distances.iter().map(|&d| f64::from(d)));
+        }
+        if grid.len() < 2 * GRID_PAIRS {
+            grid.push(sequence.frames.clone());
+            grid.push([vec![first.clone()], renders].concat());
+        }
+    }
+    let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len().max(1) as f64;
+    Ok((
+        ReconstructionReport {
+            frames: psnrs.len(),
+            psnr: mean(&psnrs),
+            ssim: mean(&ssims),
+            lpips: (!lpipses.is_empty()).then(|| mean(&lpipses)),
+        },
+        grid,
+    ))
+}
+
+fn probe_sequences(
+    model: &XFactor,
+    context: &Context<'_>,
+) -> Result<(Vec<ProbeSequence>, Vec<ProbeSequence>), EvalError> {
+    let first_test_scene = context
+        .spec
+        .scenes
+        .saturating_sub(context.spec.probe.test_scenes);
+    let (mut train, mut test) = (Vec::new(), Vec::new());
+    for sequence in &context.dataset.sequences {
+        let latents = pose_latents(
+            model,
+            &sequence.frames[0],
+            &sequence.frames,
+            &context.device,
+        )?;
+        let item = ProbeSequence {
+            latents,
+            poses: sequence.poses.clone(),
+        };
+        if sequence.scene < first_test_scene {
+            train.push(item);
+        } else {
+            test.push(item);
+        }
+    }
+    Ok((train, test))
+}
+
+/// Evaluates one model, writing its figures with `prefix`.
+fn evaluate_model(
+    model: &XFactor,
+    context: &Context<'_>,
+    prefix: &str,
+    figures: &mut Vec<String>,
+) -> Result<ModelReport, EvalError> {
+    let spec = context.spec;
+    let mut save =
+        |name: String, write: &dyn Fn(&Path) -> Result<(), EvalError>| -> Result<(), EvalError> {
+            write(&context.out_dir.join(&name))?;
+            figures.push(name);
+            Ok(())
+        };
+
+    let (reconstruction, grid) = {
+        let _span = tracing::info_span!("reconstruction", model = prefix).entered();
+        reconstruction(model, context)?
+    };
+    save(format!("{prefix}_reconstruction.png"), &|p| {
+        Ok(save_grid(&grid, p)?)
+    })?;
+
+    let pairs = draw_pairs(spec.seed, spec.scenes, spec.trajectories, spec.tps_pairs)?;
+    let mut grid_rows = Vec::new();
+    let tps = {
+        let _span =
+            tracing::info_span!("tps", model = prefix, oracle = context.oracle.name()).entered();
+        transferability(
+            &context.dataset,
+            &pairs,
+            spec.tps_frames,
+            context.oracle.as_ref(),
+            |source, scene| {
+                let renders = transfer(
+                    model,
+                    source,
+                    0,
+                    std::slice::from_ref(scene),
+                    &context.device,
+                )?;
+                if grid_rows.len() < 2 * GRID_PAIRS {
+                    grid_rows.push(source.to_vec());
+                    grid_rows.push(renders.clone());
+                }
+                Ok(renders)
+            },
+        )?
+    };
+    save(format!("{prefix}_tps_renders.png"), &|p| {
+        Ok(save_grid(&grid_rows, p)?)
+    })?;
+    if let Some(pair) = pairs.first() {
+        let indices = target_frames(spec.frames, spec.tps_frames);
+        let frames = crate::tps::pair_frames(&context.dataset, pair, &indices)?;
+        let renders = transfer(
+            model,
+            &frames.source,
+            0,
+            std::slice::from_ref(&frames.context),
+            &context.device,
+        )?;
+        let oracle = context.oracle.as_ref();
+        if let (Ok(reference), Ok(rendered)) =
+            (oracle.estimate(&frames.source), oracle.estimate(&renders))
+        {
+            save(format!("{prefix}_tps_paths.png"), &|p| {
+                Ok(save_camera_paths(
+                    &[reference.clone(), rendered.clone()],
+                    p,
+                )?)
+            })?;
+        }
+    }
+
+    let (probe, paths) = {
+        let _span = tracing::info_span!("probe", model = prefix).entered();
+        let (train, test) = probe_sequences(model, context)?;
+        run_probe(
+            &train,
+            &test,
+            &spec.probe,
+            spec.seed,
+            &context.device.clone().autodiff(),
+        )?
+    };
+    if let Some((reference, predicted)) = paths.first() {
+        save(format!("{prefix}_probe_paths.png"), &|p| {
+            Ok(save_camera_paths(
+                &[reference.clone(), predicted.clone()],
+                p,
+            )?)
+        })?;
+    }
+    Ok(ModelReport {
+        reconstruction,
+        tps,
+        probe,
+    })
+}
+
+/// Evaluates the checkpoint `weights` (its `.json` configuration beside it) on `device` and
+/// writes `report.json`, `report.md` and the figures into `out_dir` (created if needed).
+pub fn run_evaluation(
+    spec: &EvaluationSpec,
+    weights: &Path,
+    out_dir: &Path,
+    device: &Device,
+) -> Result<EvaluationReport, EvalError> {
+    let started = Instant::now();
+    let _span = tracing::info_span!("evaluate", checkpoint = %weights.display()).entered();
+    std::fs::create_dir_all(out_dir).map_err(|e| io_error(out_dir, e))?;
+    let (model, config) = checkpoint::load(weights, device)?;
+    if spec.frames < 2 || spec.probe.test_scenes >= spec.scenes {
+        return Err(EvalError::Invalid(format!(
+            "need at least 2 frames and a training scene besides the {} held-out ones (frames {}, scenes {})",
+            spec.probe.test_scenes, spec.frames, spec.scenes
+        )));
+    }
+    let scene_config = SceneConfig {
+        image_size: config.image_size,
+        ..SceneConfig::default()
+    };
+    let dataset = {
+        let _span = tracing::info_span!(
+            "generate",
+            scenes = spec.scenes,
+            trajectories = spec.trajectories
+        )
+        .entered();
+        SyntheticDataset::generate(
+            spec.seed,
+            spec.scenes,
+            spec.trajectories,
+            spec.frames,
+            &scene_config,
+        )
+    };
+    let lpips =
+        match &spec.lpips_weights {
+            Some(path) => Some(Lpips::from_file(path, device).map_err(|e| {
+                EvalError::Invalid(format!("LPIPS weights {}: {e}", path.display()))
+            })?),
+            None => None,
+        };
+    let context = Context {
+        spec,
+        oracle: oracle_for(&spec.oracle, &dataset, &scene_config),
+        dataset,
+        lpips,
+        device: device.clone(),
+        out_dir,
+    };
+    let mut figures = Vec::new();
+    let trained = evaluate_model(&model, &context, "trained", &mut figures)?;
+    let untrained = if spec.compare_untrained {
+        let baseline = XFactor::new(&config, spec.seed, device)
+            .map_err(|e| EvalError::Invalid(e.to_string()))?;
+        Some(evaluate_model(
+            &baseline,
+            &context,
+            "untrained",
+            &mut figures,
+        )?)
+    } else {
+        None
+    };
+    let report = EvaluationReport {
+        checkpoint: weights.to_path_buf(),
+        spec: spec.clone(),
+        model: config,
+        trained,
+        untrained,
+        figures,
+        seconds: started.elapsed().as_secs_f64(),
+    };
+    let json_path = out_dir.join("report.json");
+    let json = serde_json::to_string_pretty(&report).map_err(|e| io_error(&json_path, e))?;
+    std::fs::write(&json_path, json).map_err(|e| io_error(&json_path, e))?;
+    let md_path = out_dir.join("report.md");
+    std::fs::write(&md_path, markdown(&report)).map_err(|e| io_error(&md_path, e))?;
+    tracing::info!(seconds = report.seconds, dir = %out_dir.display(), "evaluation written");
+    Ok(report)
+}
+
+fn camera_cells(metrics: &CameraMetrics) -> String {
+    let at =
+        |t: u32, f: fn(&crate::metrics::ThresholdScores) -> f64| metrics.at(t).map_or(f64::NAN, f);
+    format!(
+        "{:.3} | {:.3} | {:.3} | {:.3}",
+        at(5, |s| s.rotation_accuracy),
+        at(5, |s| s.translation_accuracy),
+        at(20, |s| s.auc),
+        at(30, |s| s.auc)
+    )
+}
+
+/// The report as Markdown tables: the headline numbers of each model, then the oracle's
+/// calibration.
+pub fn markdown(report: &EvaluationReport) -> String {
+    let mut rows = vec![("trained", &report.trained)];
+    if let Some(untrained) = &report.untrained {
+        rows.push(("untrained", untrained));
+    }
+    let mut text = format!(
+        "# XFactor evaluation\n\nCheckpoint `{}`; {} scenes x {} trajectories x {} frames (seed {}); oracle `{}`; {:.1} s.\n\n",
+        report.checkpoint.display(),
+        report.spec.scenes,
+        report.spec.trajectories,
+        report.spec.frames,
+        report.spec.seed,
+        report.trained.tps.oracle,
+        report.seconds
+    );
+    text.push_str("## Reconstruction (autoencoding)\n\n| model | frames | PSNR | SSIM | LPIPS |\n| --- | --- | --- | --- | --- |\n");
+    for (name, r) in &rows {
+        let c = &r.reconstruction;
+        let lpips = c.lpips.map_or("-".to_string(), |v| format!("{v:.4}"));
+        text.push_str(&format!(
+            "| {name} | {} | {:.2} | {:.4} | {lpips} |\n",
+            c.frames, c.psnr, c.ssim
+        ));
+    }
+    text.push_str("\n## Transferability (TPS) and pose probe\n\n| model | measure | Rac@5 | Tac@5 | AUC@20 | AUC@30 |\n| --- | --- | --- | --- | --- | --- |\n");
+    for (name, r) in &rows {
+        text.push_str(&format!(
+            "| {name} | TPS | {} |\n",
+            camera_cells(&r.tps.model)
+        ));
+        text.push_str(&format!(
+            "| {name} | probe | {} |\n",
+            camera_cells(&r.probe.metrics)
+        ));
+    }
+    let tps = &report.trained.tps;
+    text.push_str(&format!(
+        "\n## Oracle calibration\n\n{} pairs x {} frames ({} skipped, {} unreadable renders).\n\n| transfer | Rac@5 | Tac@5 | AUC@20 | AUC@30 |\n| --- | --- | --- | --- | --- |\n| ideal (true rendering) | {} |\n| unrelated trajectory | {} |\n",
+        tps.pairs,
+        tps.frames_per_pair,
+        tps.skipped,
+        tps.failures,
+        camera_cells(&tps.ideal_transfer),
+        camera_cells(&tps.unrelated_trajectory)
+    ));
+    text.push_str("\n## Figures\n\n");
+    for figure in &report.figures {
+        text.push_str(&format!("![{figure}]({figure})\n"));
+    }
+    text
+}
+
+/// The spec in `path` (JSON), or the default when `path` is `None`.
+pub fn read_spec(path: Option<&Path>) -> Result<EvaluationSpec, EvalError> {
+    match path {
+        None => Ok(EvaluationSpec::default()),
+        Some(path) => {
+            let text = std::fs::read_to_string(path).map_err(|e| io_error(path, e))?;
+            serde_json::from_str(&text)
+                .map_err(|e| EvalError::Invalid(format!("{}: {e}", path.display())))
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn spec_round_trips_and_fills_defaults() {
+        let spec: EvaluationSpec = serde_json::from_str(r#"{"scenes": 4, "oracle": {"kind": "external", "program": "vggt-poses"}, "probe": {"steps": 10}}"#).unwrap();
+        assert_eq!(spec.scenes, 4);
+        assert_eq!(spec.probe.steps, 10);
+        assert_eq!(spec.probe.width, 256);
+        assert_eq!(
+            spec.oracle,
+            OracleSpec::External {
+                program: "vggt-poses".into(),
+                args: vec![]
+            }
+        );
+        let back: EvaluationSpec =
+            serde_json::from_str(&serde_json::to_string(&spec).unwrap()).unwrap();
+        assert_eq!(back, spec);
+        assert!(serde_json::from_str::<EvaluationSpec>(r#"{"scene": 4}"#).is_err());
+    }
+}

@@ -1,0 +1,21 @@
+//! `evaluation`: XFactor's reason to exist — take the camera motion of one video and render it
+//! in another scene — and the measurements the paper uses to prove it works: reconstruction
+//! metrics, camera metrics, the transferability score (TPS) with pluggable pose oracles, and the
+//! pose probe.
+
+pub mod error;
+pub mod figures;
+pub mod frames;
+pub mod geometry;
+pub mod inference;
+pub mod metrics;
+pub mod oracle;
+pub mod transfer;
+
+pub use error::EvalError;
+pub use transfer::{TransferOutput, TransferRequest, run_transfer};
+pub mod evaluate;
+pub mod probe;
+pub mod tps;
+
+pub use evaluate::{EvaluationReport, EvaluationSpec, run_evaluation};

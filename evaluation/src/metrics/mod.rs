@@ -1,0 +1,9 @@
+//! The numbers the paper reports: reconstruction quality of images and accuracy of cameras.
+
+pub mod camera;
+pub mod image;
+
+pub use camera::{
+    CameraMetrics, PairError, THRESHOLDS, ThresholdScores, pair_error, trajectory_errors,
+};
+pub use image::{ImageMetricError, psnr, ssim};

@@ -1,0 +1,245 @@
+//! The transferability score (TPS): pose latents of sequence A's target frames render sequence
+//! B's context along A's motion; an oracle estimates the camera motion of A's frames and of the
+//! renders, and the camera metrics compare the two.
+//!
+//! On generated data every trajectory is rendered in every scene, so each pair also carries two
+//! calibrations of the oracle: B's true rendering along A's motion (a perfect transfer) and B
+//! along an unrelated trajectory (a failed one).
+
+use serde::{Deserialize, Serialize};
+use trainer_core::augment::Image;
+use trainer_core::rng::Stream;
+use trainer_core::synthetic::SyntheticDataset;
+
+use crate::error::EvalError;
+use crate::metrics::{CameraMetrics, PairError, trajectory_errors};
+use crate::oracle::PoseOracle;
+
+/// Stream tag of the pair draws.
+const TPS_TAG: u64 = 0x0054_5053;
+/// Errors recorded for every frame pair of a render the oracle could not read.
+const FAILED: PairError = PairError {
+    rotation: 180.0,
+    translation: 90.0,
+};
+
+/// One transfer: A's motion (scene, trajectory) rendered in scene `scene_b`, starting from B's
+/// view of A's first frame; `other_trajectory` is the unrelated motion of the failed baseline.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
+pub struct TpsPair {
+    /// Scene A.
+    pub scene_a: u64,
+    /// Scene B (never A).
+    pub scene_b: u64,
+    /// The trajectory transferred.
+    pub trajectory: u64,
+    /// A different trajectory, for the random baseline.
+    pub other_trajectory: u64,
+}
+
+/// `count` pairs drawn from `(seed)`; needs at least two scenes and two trajectories.
+pub fn draw_pairs(
+    seed: u64,
+    scenes: u64,
+    trajectories: u64,
+    count: usize,
+) -> Result<Vec<TpsPair>, EvalError> {
+    if scenes < 2 || trajectories < 2 {
+        return Err(EvalError::Invalid(format!(
+            "TPS needs at least 2 scenes and 2 trajectories, got {scenes} and {trajectories}"
+        )));
+    }
+    Ok((0..count as u64)
+        .map(|k| {
+            let mut stream = Stream::new(&[seed, TPS_TAG, k]);
+            let scene_a = stream.below(scenes);
+            let scene_b = (scene_a + 1 + stream.below(scenes - 1)) % scenes;
+            let trajectory = stream.below(trajectories);
+            let other_trajectory = (trajectory + 1 + stream.below(trajectories - 1)) % trajectories;
+            TpsPair {
+                scene_a,
+                scene_b,
+                trajectory,
+                other_trajectory,
+            }
+        })
+        .collect())
+}
+
+/// `count` equally spaced frame indices of a `frames`-frame sequence, first and last included.
+pub fn target_frames(frames: usize, count: usize) -> Vec<usize> {
+    if count >= frames || count < 2 {
+        return (0..frames).collect();
+    }
+    (0..count).map(|k| k * (frames - 1) / (count - 1)).collect()
+}
+
+/// The frames of one TPS pair: A's targets, B's true rendering along them, B along another
+/// motion, and B's context view.
+#[derive(Debug, Clone)]
+pub struct PairFrames {
+    /// A's target frames (the first is A's reference).
+    pub source: Vec<Image>,
+    /// B rendered along A's motion: what a perfect transfer produces.
+    pub ideal: Vec<Image>,
+    /// B rendered along an unrelated motion.
+    pub unrelated: Vec<Image>,
+    /// B's context view (B's view of A's first pose).
+    pub context: Image,
+}
+
+/// Gathers the frames of `pair` at `indices`.
+pub fn pair_frames(
+    dataset: &SyntheticDataset,
+    pair: &TpsPair,
+    indices: &[usize],
+) -> Result<PairFrames, EvalError> {
+    let sequence = |scene, trajectory| {
+        dataset.sequence(scene, trajectory).ok_or_else(|| {
+            EvalError::Invalid(format!(
+                "no generated sequence for scene {scene}, trajectory {trajectory}"
+            ))
+        })
+    };
+    let a = sequence(pair.scene_a, pair.trajectory)?;
+    let b = sequence(pair.scene_b, pair.trajectory)?;
+    let other = sequence(pair.scene_b, pair.other_trajectory)?;
+    let pick = |frames: &[Image]| {
+        indices
+            .iter()
+            .map(|&i| frames[i].clone())
+            .collect::<Vec<_>>()
+    };
+    Ok(PairFrames {
+        source: pick(&a.frames),
+        ideal: pick(&b.frames),
+        unrelated: pick(&other.frames),
+        context: b.frames[indices[0]].clone(),
+    })
+}
+
+/// TPS of one renderer and of the two calibrations.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct TpsReport {
+    /// Oracle used.
+    pub oracle: String,
+    /// Pairs evaluated.
+    pub pairs: usize,
+    /// Target frames per pair.
+    pub frames_per_pair: usize,
+    /// Pairs skipped because the oracle could not read A's frames.
+    pub skipped: usize,
+    /// Model renders the oracle could not read (their frame pairs count as wrong).
+    pub failures: usize,
+    /// The model's transfers.
+    pub model: CameraMetrics,
+    /// B's true rendering along A's motion (perfect transfer).
+    pub ideal_transfer: CameraMetrics,
+    /// B along an unrelated motion (failed transfer).
+    pub unrelated_trajectory: CameraMetrics,
+}
+
+/// Runs TPS: `render(source, context)` must return one render per source frame.
+pub fn transferability(
+    dataset: &SyntheticDataset,
+    pairs: &[TpsPair],
+    frames_per_pair: usize,
+    oracle: &dyn PoseOracle,
+    mut render: impl FnMut(&[Image], &Image) -> Result<Vec<Image>, EvalError>,
+) -> Result<TpsReport, EvalError> {
+    let frames = dataset.sequences.first().map_or(0, |s| s.frames.len());
+    let indices = target_frames(frames, frames_per_pair);
+    let (mut model, mut ideal, mut unrelated) = (Vec::new(), Vec::new(), Vec::new());
+    let (mut skipped, mut failures) = (0, 0);
+    let pair_count = indices.len() * indices.len().saturating_sub(1) / 2;
+    for pair in pairs {
+        let frames = pair_frames(dataset, pair, &indices)?;
+        let reference = match oracle.estimate(&frames.source) {
+            Ok(poses) => poses,
+            Err(error) => {
+                tracing::warn!(?pair, %error, "oracle cannot read the source; pair skipped");
+                skipped += 1;
+                continue;
+            }
+        };
+        let score = |images: &[Image], into: &mut Vec<PairError>| -> bool {
+            match oracle.estimate(images) {
+                Ok(poses) => {
+                    into.extend(trajectory_errors(&reference, &poses));
+                    true
+                }
+                Err(error) => {
+                    tracing::debug!(?pair, %error, "oracle cannot read a transfer");
+                    into.extend(std::iter::repeat_n(FAILED, pair_count));
+                    false
+                }
+            }
+        };
+        let renders = render(&frames.source, &frames.context)?;
+        failures += usize::from(!score(&renders, &mut model));
+        score(&frames.ideal, &mut ideal);
+        score(&frames.unrelated, &mut unrelated);
+    }
+    Ok(TpsReport {
+        oracle: oracle.name().to_string(),
+        pairs: pairs.len(),
+        frames_per_pair: indices.len(),
+        skipped,
+        failures,
+        model: CameraMetrics::from_errors(&model),
+        ideal_transfer: CameraMetrics::from_errors(&ideal),
+        unrelated_trajectory: CameraMetrics::from_errors(&unrelated),
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::oracle::GroundTruthOracle;
+    use trainer_core::scenes::SceneConfig;
+
+    #[test]
+    fn ground_truth_tps_is_perfect_for_itself_and_low_for_random_motion() {
+        let config = SceneConfig {
+            image_size: 24,
+            ..SceneConfig::default()
+        };
+        let dataset = SyntheticDataset::generate(2, 3, 4, 9, &config);
+        let oracle = GroundTruthOracle::from_dataset(&dataset);
+        let pairs = draw_pairs(1, 3, 4, 6).unwrap();
+        assert!(
+            pairs
+                .iter()
+                .all(|p| p.scene_a != p.scene_b && p.trajectory != p.other_trajectory)
+        );
+        assert_eq!(target_frames(9, 5), vec![0, 2, 4, 6, 8]);
+        // A "renderer" that returns the ideal transfer, and one that returns an unrelated one.
+        let report = transferability(&dataset, &pairs, 5, &oracle, |source, _| {
+            let pose_source = oracle.estimate(source)?;
+            Ok(dataset
+                .sequences
+                .iter()
+                .find(|s| s.poses[0] == pose_source[0] && s.frames[0] != source[0])
+                .map(|s| {
+                    [0, 2, 4, 6, 8]
+                        .iter()
+                        .map(|&i| s.frames[i].clone())
+                        .collect()
+                })
+                .unwrap_or_default())
+        })
+        .unwrap();
+        assert_eq!(report.model.pairs, 6 * 10);
+        let perfect = report.ideal_transfer.at(3).unwrap();
+        assert_eq!(
+            (perfect.rotation_accuracy, perfect.translation_accuracy),
+            (1.0, 1.0)
+        );
+        assert!(perfect.auc > 0.99);
+        assert_eq!(report.model.at(3).unwrap().auc, perfect.auc);
+        let random = report.unrelated_trajectory.at(30).unwrap();
+        assert!(random.auc < 0.5, "{:?}", report.unrelated_trajectory);
+        assert!(random.auc < perfect.auc);
+        assert!(draw_pairs(0, 1, 4, 2).is_err());
+    }
+}
