@@ -190,6 +190,11 @@ pub struct ClusterConfig {
     /// `--metrics-address` wins). Absent: no endpoint.
     #[serde(default)]
     pub metrics_listen: Option<NonEmpty>,
+    /// Evaluate stage 2's final weights (TPS, pose probe, reconstruction) on one worker once
+    /// training is done; the report lands under `<checkpoint.uri>/evaluation/`. Absent: no
+    /// evaluation stage. Every key is optional (`evaluate: {}` takes the defaults).
+    #[serde(default)]
+    pub evaluate: Option<evaluation::EvaluationSpec>,
 }
 
 /// PEM files of the coordinator's TLS identity. They are read when the job starts, so a
@@ -704,6 +709,20 @@ checkpoint:
         assert!(error.contains("stage2"), "{error}");
         assert!(error.contains("line 21"), "{error}");
         assert!(error.contains("expected one of"), "{error}");
+    }
+
+    #[test]
+    fn the_evaluation_section_takes_defaults_and_names_unknown_keys() {
+        let config =
+            ClusterConfig::from_yaml(&format!("{GOOD}evaluate: {{tps_pairs: 4}}\n"), "t.yaml")
+                .unwrap_or_else(|e| panic!("{e}"));
+        let spec = config.evaluate.expect("an evaluation");
+        assert_eq!(spec.tps_pairs, 4);
+        assert_eq!(spec.probe, evaluation::EvaluationSpec::default().probe);
+        let error = error_of(&format!("{GOOD}evaluate:\n  tps_pairz: 4\n"));
+        assert!(error.contains("tps_pairz"), "{error}");
+        assert!(error.contains("evaluate"), "{error}");
+        assert!(error.contains("line"), "{error}");
     }
 
     #[test]

@@ -50,13 +50,23 @@ pub struct Commit {
 pub struct Durable {
     /// Job name, to refuse another job's state.
     pub job: String,
-    /// Current stage (3 once finished).
+    /// Current stage: 1 and 2 train, 3 evaluates (when the job has an `evaluate` section);
+    /// past the last one the job is finished.
     pub stage: u32,
     /// Newest commit of the current stage.
     pub last_commit: Option<Commit>,
     /// Stage 1's final checkpoint, once there is one.
     pub stage1_final: Option<String>,
+    /// Stage 2's final checkpoint, once there is one (what the evaluation stage evaluates).
+    #[serde(default)]
+    pub stage2_final: Option<String>,
+    /// Where the evaluation report was committed.
+    #[serde(default)]
+    pub evaluation: Option<String>,
 }
+
+/// The stage number of the evaluation that follows stage 2.
+pub const EVALUATE_STAGE: u32 = 3;
 
 /// One finished step as reported by every rank.
 #[derive(Debug, Clone, Default, Serialize)]
@@ -90,6 +100,8 @@ pub struct Report {
     pub commits: Vec<Commit>,
     /// Stage 1's final checkpoint.
     pub stage1_final: Option<String>,
+    /// Where the evaluation report was committed (its `report.json`, `report.md`, PNGs).
+    pub evaluation: Option<String>,
     /// Every step report.
     pub steps: Vec<StepRecord>,
     /// Steps whose ranks disagreed on the checksum.
@@ -166,6 +178,8 @@ impl JobState {
             stage: 1,
             last_commit: None,
             stage1_final: None,
+            stage2_final: None,
+            evaluation: None,
         });
         Self {
             plan,
@@ -181,6 +195,7 @@ impl JobState {
             report: Report {
                 job,
                 stage1_final: durable.stage1_final.clone(),
+                evaluation: durable.evaluation.clone(),
                 ..Report::default()
             },
             durable,
@@ -194,9 +209,26 @@ impl JobState {
         &self.plan
     }
 
-    /// Whether both stages are done.
+    /// Whether both stages (and the evaluation, when the job has one) are done.
     pub fn finished(&self) -> bool {
-        self.durable.stage > 2
+        self.durable.stage > self.final_stage()
+    }
+
+    fn final_stage(&self) -> u32 {
+        if self.plan.config.evaluate.is_some() {
+            EVALUATE_STAGE
+        } else {
+            2
+        }
+    }
+
+    /// Steps of `stage`; the evaluation counts as one.
+    fn stage_steps(&self, stage: u32) -> u64 {
+        if stage == EVALUATE_STAGE {
+            1
+        } else {
+            self.plan.stage(stage).steps
+        }
     }
 
     /// State to persist after a commit.
@@ -370,21 +402,35 @@ impl JobState {
         tracing::info!(stage = commit.stage, step = commit.step, location = %commit.location, "checkpoint committed");
         self.report.commits.push(commit.clone());
         self.durable.last_commit = Some(commit.clone());
-        let total = self.plan.stage(commit.stage).steps;
+        let total = self.stage_steps(commit.stage);
         if commit.step < total {
             return Ok(false);
         }
         self.group = None;
         self.lost_at = None;
-        if commit.stage == 1 {
-            self.durable.stage1_final = Some(commit.location.clone());
-            self.report.stage1_final = Some(commit.location);
-            self.durable.stage = 2;
-            self.durable.last_commit = None;
-            tracing::info!("stage 1 finished; stage 2 starts from its final weights");
-        } else {
-            self.durable.stage = 3;
-            tracing::info!("stage 2 finished; the job is done");
+        match commit.stage {
+            1 => {
+                self.durable.stage1_final = Some(commit.location.clone());
+                self.report.stage1_final = Some(commit.location);
+                self.durable.stage = 2;
+                self.durable.last_commit = None;
+                tracing::info!("stage 1 finished; stage 2 starts from its final weights");
+            }
+            2 => {
+                self.durable.stage2_final = Some(commit.location);
+                self.durable.stage = 3;
+                if self.finished() {
+                    tracing::info!("stage 2 finished; the job is done");
+                } else {
+                    tracing::info!("stage 2 finished; one worker evaluates its final weights");
+                }
+            }
+            _ => {
+                self.durable.evaluation = Some(commit.location.clone());
+                self.report.evaluation = Some(commit.location);
+                self.durable.stage = EVALUATE_STAGE + 1;
+                tracing::info!("evaluation committed; the job is done");
+            }
         }
         self.current_step = 0;
         Ok(true)
@@ -407,7 +453,7 @@ impl JobState {
                 .members
                 .iter()
                 .any(|m| self.members.get(m).is_none_or(|m| m.lost));
-            let total = self.plan.stage(group.stage).steps;
+            let total = self.stage_steps(group.stage);
             let troubled = group.members.iter().any(|m| {
                 self.members.get(m).is_some_and(|member| {
                     member.waiting_after == Some(group.generation)
@@ -463,9 +509,10 @@ impl JobState {
         if !ready {
             return false;
         }
-        let members: Vec<u64> = waiting.into_iter().take(expected).collect();
-        self.generation += 1;
         let stage = self.durable.stage;
+        let size = if stage == EVALUATE_STAGE { 1 } else { expected };
+        let members: Vec<u64> = waiting.into_iter().take(size).collect();
+        self.generation += 1;
         let group = Group {
             generation: self.generation,
             members: members.clone(),
@@ -503,6 +550,9 @@ impl JobState {
     }
 
     fn assignment(&self, stage: u32, rank: usize, peers: &[String]) -> Assignment {
+        if stage == EVALUATE_STAGE {
+            return self.evaluation_assignment(peers);
+        }
         let plan = self.plan.stage(stage);
         let config = &self.plan.config;
         let resume = self
@@ -543,6 +593,35 @@ impl JobState {
                 crate::config::DeviceChoice::Wgpu => "wgpu",
             }
             .into(),
+            evaluation_json: String::new(),
+        }
+    }
+
+    /// The evaluation of stage 2's final weights, for the one worker of the group.
+    fn evaluation_assignment(&self, peers: &[String]) -> Assignment {
+        let config = &self.plan.config;
+        Assignment {
+            action: Action::Evaluate as i32,
+            generation: self.generation,
+            rank: 0,
+            world_size: 1,
+            peers: peers.to_vec(),
+            stage: EVALUATE_STAGE,
+            total_steps: 1,
+            init_weights_from: self.durable.stage2_final.clone().unwrap_or_default(),
+            checkpoint_prefix: format!(
+                "{}/evaluation",
+                config.checkpoint.uri.0.trim_end_matches('/')
+            ),
+            model_config_json: serde_json::to_string(&self.plan.model).unwrap_or_default(),
+            evaluation_json: serde_json::to_string(&config.evaluate).unwrap_or_default(),
+            device: match config.workers.device {
+                crate::config::DeviceChoice::Auto => "auto",
+                crate::config::DeviceChoice::Cpu => "cpu",
+                crate::config::DeviceChoice::Wgpu => "wgpu",
+            }
+            .into(),
+            ..Assignment::default()
         }
     }
 
@@ -552,7 +631,9 @@ impl JobState {
         JobStatus {
             job_name: self.plan.config.job.0.clone(),
             phase: match (stage, &self.group) {
-                (3.., _) => "finished".into(),
+                _ if self.finished() => "finished".into(),
+                (EVALUATE_STAGE, Some(_)) => "evaluate".into(),
+                (EVALUATE_STAGE, None) => "evaluate (waiting for a worker)".into(),
                 (s, Some(_)) => format!("stage{s}"),
                 (s, None) => format!("stage{s} (waiting for workers)"),
             },

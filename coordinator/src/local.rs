@@ -46,6 +46,9 @@ pub struct LocalJob {
     pub seed: u64,
     /// Use in-memory generated scenes instead of a stored dataset.
     pub in_memory: bool,
+    /// Evaluate stage 2's final weights after training (a small TPS, probe and
+    /// reconstruction run on generated scenes).
+    pub evaluate: bool,
     /// Port of the coordinator's `/metrics` endpoint; `None`: no endpoint.
     pub coordinator_metrics_port: Option<u16>,
     /// Ports of the workers' `/metrics` endpoints, by worker index; missing: no endpoint.
@@ -73,6 +76,7 @@ impl LocalJob {
             port,
             seed: 7,
             in_memory: false,
+            evaluate: false,
             coordinator_metrics_port: None,
             worker_metrics_ports: Vec::new(),
         }
@@ -162,6 +166,13 @@ impl LocalJob {
             self.checkpoint_dir().display(),
             self.checkpoint_every
         );
+        if self.evaluate {
+            let _ = writeln!(
+                yaml,
+                "evaluate:\n  seed: {}\n  scenes: 3\n  trajectories: 4\n  frames: 6\n  tps_pairs: 8\n  reconstruction_sequences: 4\n  probe: {{steps: 150, batch: 16, width: 64, test_scenes: 1}}",
+                self.seed
+            );
+        }
         let _ = writeln!(
             yaml,
             "workers:\n  expected: {}\n  minimum: {}\n  device: cpu\n  threads: 1\n  heartbeat_interval_s: 0.25\n  heartbeat_timeout_s: 3\n  regroup_grace_s: 1\n  quorum_timeout_s: 120",

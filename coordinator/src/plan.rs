@@ -263,6 +263,22 @@ impl Plan {
             "checkpoints: {} every {} steps",
             config.checkpoint.uri.0, config.checkpoint.every.0
         );
+        match &config.evaluate {
+            Some(spec) => {
+                let _ = writeln!(
+                    out,
+                    "stage 3: one worker evaluates stage 2's final weights ({} scenes x {} trajectories, {} TPS pairs, probe {} steps); report under {}/evaluation/",
+                    spec.scenes,
+                    spec.trajectories,
+                    spec.tps_pairs,
+                    spec.probe.steps,
+                    config.checkpoint.uri.0.trim_end_matches('/')
+                );
+            }
+            None => {
+                let _ = writeln!(out, "no evaluation stage (add `evaluate: {{}}` for one)");
+            }
+        }
         out
     }
 }

@@ -131,9 +131,11 @@ fn load_weights(location: &str) -> FlaxTensors {
 }
 
 #[test]
-fn two_workers_run_both_stages_in_lockstep() {
+fn two_workers_run_both_stages_in_lockstep_then_one_evaluates() {
     let dir = tempfile::tempdir().unwrap();
-    let report = Running::start(small_job(dir.path(), 2)).finish(Duration::from_secs(300));
+    let mut job = small_job(dir.path(), 2);
+    job.evaluate = true;
+    let report = Running::start(job).finish(Duration::from_secs(300));
     assert_eq!(report["outcome"], "finished");
     assert_eq!(report["checksum_mismatches"].as_array().unwrap().len(), 0);
     let steps = report["steps"].as_array().unwrap();
@@ -165,6 +167,40 @@ fn two_workers_run_both_stages_in_lockstep() {
         last.get(&name).unwrap().values,
         "stage 2 trained on"
     );
+    let evaluation = Path::new(report["evaluation"].as_str().expect("an evaluation report"));
+    assert!(evaluation.starts_with(dir.path().join("checkpoints/evaluation")));
+    let numbers: Value =
+        serde_json::from_slice(&std::fs::read(evaluation.join("report.json")).unwrap()).unwrap();
+    assert_eq!(
+        numbers["checkpoint"]
+            .as_str()
+            .map(|c| c.ends_with("model.safetensors")),
+        Some(true)
+    );
+    for model in ["trained", "untrained"] {
+        let psnr = numbers[model]["reconstruction"]["psnr"].as_f64().unwrap();
+        assert!(psnr.is_finite() && psnr > 0.0, "{model} psnr {psnr}");
+        assert!(numbers[model]["tps"]["model"]["pairs"].as_u64().unwrap() > 0);
+        assert!(
+            numbers[model]["probe"]["metrics"]["pairs"]
+                .as_u64()
+                .unwrap()
+                > 0
+        );
+    }
+    let markdown = std::fs::read_to_string(evaluation.join("report.md")).unwrap();
+    assert!(markdown.contains('|'), "{markdown}");
+    let figures = std::fs::read_dir(evaluation)
+        .unwrap()
+        .filter(|e| {
+            e.as_ref()
+                .unwrap()
+                .path()
+                .extension()
+                .is_some_and(|x| x == "png")
+        })
+        .count();
+    assert!(figures >= 4, "{figures} figures");
 }
 
 #[test]

@@ -195,15 +195,20 @@ pub fn run(options: WorkerOptions) -> anyhow::Result<()> {
             stage = assignment.stage
         );
         let _entered = span.enter();
-        match train_generation(
-            &runtime,
-            &mut client,
-            &options,
-            &link,
-            &mailbox,
-            &progress,
-            &assignment,
-        ) {
+        let ended = if assignment.action == Action::Evaluate as i32 {
+            evaluate(&runtime, &mut client, &options, &progress, &assignment)
+        } else {
+            train_generation(
+                &runtime,
+                &mut client,
+                &options,
+                &link,
+                &mailbox,
+                &progress,
+                &assignment,
+            )
+        };
+        match ended {
             Ok(Ending::Done) => {
                 failures = 0;
                 tracing::info!("stage {} done in this generation", assignment.stage);
@@ -566,6 +571,72 @@ fn train_generation(
             )?;
         }
     }
+    Ok(Ending::Done)
+}
+
+/// Evaluates the assigned weights (stage 2's final checkpoint) with the job's evaluation spec,
+/// uploads the report under the assignment's prefix with its manifest last, and commits it.
+fn evaluate(
+    runtime: &Runtime,
+    client: &mut Client,
+    options: &WorkerOptions,
+    progress: &Progress,
+    assignment: &Assignment,
+) -> anyhow::Result<Ending> {
+    let spec: evaluation::EvaluationSpec = serde_json::from_str(&assignment.evaluation_json)
+        .context("assignment's evaluation spec")?;
+    let backend = choose_backend(options.device.as_deref().unwrap_or(&assignment.device))?;
+    let scratch = options
+        .scratch
+        .join(format!("worker-{}", progress.worker.load(Ordering::SeqCst)));
+    let weights_dir = scratch.join("evaluate-weights");
+    let report_dir = scratch.join("evaluation");
+    for dir in [&weights_dir, &report_dir] {
+        let _ = std::fs::remove_dir_all(dir);
+    }
+    runtime.block_on(checkpoints::download(
+        &assignment.init_weights_from,
+        &weights_dir,
+    ))?;
+    tracing::info!(weights = %assignment.init_weights_from, "evaluating");
+    let report = evaluation::run_evaluation(
+        &spec,
+        &weights_dir.join("model.safetensors"),
+        &report_dir,
+        &backend.device(),
+    )
+    .with_context(|| format!("evaluating {}", assignment.init_weights_from))?;
+    tracing::info!(
+        seconds = report.seconds,
+        "evaluation done; report.json, report.md and figures written"
+    );
+    if *progress.stopping.borrow() {
+        return Ok(Ending::Stopping);
+    }
+    let location = format!(
+        "{}/g{}",
+        assignment.checkpoint_prefix, assignment.generation
+    );
+    runtime.block_on(checkpoints::upload(
+        &report_dir,
+        &location,
+        assignment.stage,
+        assignment.total_steps,
+    ))?;
+    let ack = runtime
+        .block_on(client.commit_checkpoint(CheckpointCommit {
+            worker_id: progress.worker.load(Ordering::SeqCst),
+            generation: assignment.generation,
+            stage: assignment.stage,
+            step: assignment.total_steps,
+            location: location.clone(),
+        }))
+        .map_err(|s| anyhow!("commit of {location} failed: {}", s.message()))?
+        .into_inner();
+    if !ack.accepted {
+        bail!("commit of {location} refused: {}", ack.reason);
+    }
+    tracing::info!(%location, "evaluation report committed");
     Ok(Ending::Done)
 }
 

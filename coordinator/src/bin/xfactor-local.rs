@@ -3,7 +3,7 @@
 //! both stages.
 
 use std::io::{IsTerminal, Write};
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
@@ -18,13 +18,13 @@ use trainer_core::cli::{Flags, init_logging};
 const USAGE: &str =
     "usage: xfactor-local [--dir DIR] [--workers N] [--stage1-steps N] [--stage2-steps N]
                      [--preset tiny|benchmark|paper] [--image-size PX]
-                     [--global-batch N] [--micro-batch N]";
+                     [--global-batch N] [--micro-batch N] [--no-evaluate]";
 
 fn main() -> anyhow::Result<()> {
     let args: Vec<String> = std::env::args().skip(1).collect();
     let flags = Flags::parse(
         &args,
-        &[],
+        &["no-evaluate"],
         &[
             "dir",
             "workers",
@@ -51,6 +51,7 @@ fn main() -> anyhow::Result<()> {
     job.global_batch = number("global-batch", job.global_batch)?;
     job.micro_batch = number("micro-batch", job.micro_batch)?;
     job.image_size = number("image-size", job.image_size as u64)? as usize;
+    job.evaluate = !flags.has("no-evaluate");
     if let Some(preset) = flags.get("preset") {
         job.preset = preset.to_string();
     }
@@ -115,6 +116,9 @@ fn main() -> anyhow::Result<()> {
             timed.allreduce_s,
             timed.allreduce_s / timed.step_s
         ));
+    }
+    if let Some(location) = report["evaluation"].as_str() {
+        figures.push(evaluation_figures(Path::new(location))?);
     }
     println!(
         "outcome={} workers={} preset={} image_size={} global_batch={} micro_batch={} steps={} {} restarts={} checksum_mismatches={} seconds={:.1} report={}",
@@ -187,4 +191,41 @@ impl StepTimes {
             allreduce_s: mean("allreduce_s"),
         }
     }
+}
+
+/// The headline numbers of the evaluation report at `location` (trained model, and the
+/// untrained baseline when the report has one).
+fn evaluation_figures(location: &Path) -> anyhow::Result<String> {
+    let path = location.join("report.json");
+    let report: serde_json::Value = serde_json::from_slice(
+        &std::fs::read(&path).with_context(|| format!("reading {}", path.display()))?,
+    )
+    .with_context(|| format!("{} is not JSON", path.display()))?;
+    let auc30 = |metrics: &serde_json::Value| {
+        metrics["thresholds"]
+            .as_array()
+            .and_then(|t| t.iter().find(|s| s["threshold"] == 30))
+            .and_then(|s| s["auc"].as_f64())
+            .unwrap_or(f64::NAN)
+    };
+    let mut figures = Vec::new();
+    for model in ["trained", "untrained"] {
+        let numbers = &report[model];
+        if numbers.is_null() {
+            continue;
+        }
+        figures.push(format!(
+            "{model}_psnr={:.2} {model}_tps_auc30={:.3} {model}_probe_auc30={:.3}",
+            numbers["reconstruction"]["psnr"]
+                .as_f64()
+                .unwrap_or(f64::NAN),
+            auc30(&numbers["tps"]["model"]),
+            auc30(&numbers["probe"]["metrics"])
+        ));
+    }
+    figures.push(format!(
+        "evaluation={}",
+        location.join("report.md").display()
+    ));
+    Ok(figures.join(" "))
 }
