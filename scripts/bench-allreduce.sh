@@ -6,5 +6,5 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 source scripts/env.sh
-cargo build --release -p coordinator -p worker --bins
+cargo build --release -p coordinator -p worker -p evaluation --bins
 cargo bench -p worker --bench allreduce -- "$@"

@@ -6,5 +6,5 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup.sh
 source scripts/env.sh
-cargo build --release -p coordinator -p worker --bins
+cargo build --release -p coordinator -p worker -p evaluation --bins
 "$CARGO_TARGET_DIR/release/xfactor-local" "$@"
