@@ -183,9 +183,14 @@ fn the_dockerfile_is_well_formed_and_builds_the_readme_binaries() {
         dockerfile.contains(&docker_build),
         "the Dockerfile must run `{docker_build}` like scripts/run.sh"
     );
-    for binary in ["xfactor-coordinator", "xfactor-worker", "xfactor-local", "xfactor"] {
+    for binary in [
+        "xfactor-coordinator",
+        "xfactor-worker",
+        "xfactor-local",
+        "xfactor",
+    ] {
         assert!(
-            dockerfile.contains(&format!("target/release/{binary}")),
+            dockerfile.contains(&format!("target/release/{binary} ")),
             "{binary} not copied"
         );
     }
