@@ -2,25 +2,11 @@
 //! membership events. Scraped from `/metrics` (see the `telemetry` crate).
 
 use proto::v1::{JobStatus, StepReport};
+pub use telemetry::training::{GENERATION, GRAD_NORM, LEARNING_RATE, LOSS, STAGE, STEP};
 use telemetry::{Metric, Registry};
 
-/// Stage being trained (1 or 2; 3 once finished).
-pub const STAGE: Metric = Metric::gauge("xfactor_stage", "Stage being trained (3 once finished).");
-/// Steps done in the current stage.
-pub const STEP: Metric =
-    Metric::gauge("xfactor_step", "Optimiser steps done in the current stage.");
 /// Steps of the current stage.
 pub const STAGE_STEPS: Metric = Metric::gauge("xfactor_stage_steps", "Steps of the current stage.");
-/// Loss of the last step's global batch.
-pub const LOSS: Metric = Metric::gauge("xfactor_loss", "Loss of the last step's global batch.");
-/// Learning rate of the last step.
-pub const LEARNING_RATE: Metric =
-    Metric::gauge("xfactor_learning_rate", "Learning rate of the last step.");
-/// Gradient norm before clipping.
-pub const GRAD_NORM: Metric = Metric::gauge(
-    "xfactor_grad_norm",
-    "Global gradient norm of the last step before clipping.",
-);
 /// Samples per second summed over the group.
 pub const SAMPLES_PER_SECOND: Metric = Metric::gauge(
     "xfactor_samples_per_second",
@@ -45,11 +31,6 @@ pub const WORKER_SKIPPED_FRAMES: Metric = Metric::counter(
 pub const WORKERS: Metric = Metric::gauge(
     "xfactor_workers",
     "Registered workers whose heartbeats are on time.",
-);
-/// Current generation.
-pub const GENERATION: Metric = Metric::gauge(
-    "xfactor_generation",
-    "Current group generation (grows on every re-formation).",
 );
 /// Generations abandoned.
 pub const RESTARTS: Metric = Metric::counter(

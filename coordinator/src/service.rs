@@ -277,16 +277,21 @@ impl Coordinator for CoordinatorService {
         request: Request<HeartbeatRequest>,
     ) -> Result<Response<HeartbeatReply>, Status> {
         let request = request.into_inner();
-        let (known, generation_current) = self.state.lock().await.heartbeat(
-            request.worker_id,
-            request.generation,
-            Instant::now(),
-        );
-        self.metrics.add(&metrics::HEARTBEATS, &[], 1.0);
-        Ok(Response::new(HeartbeatReply {
-            generation_current,
-            known,
-        }))
+        let span = tracing::trace_span!("rpc_heartbeat", worker = request.worker_id);
+        async {
+            let (known, generation_current) = self.state.lock().await.heartbeat(
+                request.worker_id,
+                request.generation,
+                Instant::now(),
+            );
+            self.metrics.add(&metrics::HEARTBEATS, &[], 1.0);
+            Ok(Response::new(HeartbeatReply {
+                generation_current,
+                known,
+            }))
+        }
+        .instrument(span)
+        .await
     }
 
     async fn report_step(&self, request: Request<StepReport>) -> Result<Response<StepAck>, Status> {
@@ -323,7 +328,10 @@ impl Coordinator for CoordinatorService {
         &self,
         _request: Request<StatusRequest>,
     ) -> Result<Response<JobStatus>, Status> {
-        Ok(Response::new(self.state.lock().await.status()))
+        let status = async { self.state.lock().await.status() }
+            .instrument(tracing::debug_span!("rpc_status"))
+            .await;
+        Ok(Response::new(status))
     }
 
     async fn leave(&self, request: Request<LeaveRequest>) -> Result<Response<LeaveReply>, Status> {

@@ -125,21 +125,34 @@ async fn refusals_name_their_reason() {
     server.await.unwrap().unwrap();
 }
 
+fn test_certificates() -> std::path::PathBuf {
+    std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../proto/testdata/tls")
+}
+
+/// A coordinator whose YAML names the test certificate and `key` (a file of the test folder).
+async fn tls_coordinator(
+    port: u16,
+    checkpoints: &std::path::Path,
+    key: &str,
+) -> CoordinatorService {
+    let certificates = test_certificates();
+    let text = format!(
+        "{}tls:\n  cert: {}\n  key: {}\n",
+        yaml(port, &checkpoints.display().to_string()),
+        certificates.join("server.pem").display(),
+        certificates.join(key).display()
+    );
+    let config = ClusterConfig::from_yaml(&text, "tls.yaml").unwrap();
+    let plan = Plan::build(config).await.unwrap();
+    CoordinatorService::new(plan).await.unwrap()
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn tls_round_trip_with_a_test_certificate() {
     let dir = tempfile::tempdir().unwrap();
     let port = free_port().unwrap();
-    let certificates =
-        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../proto/testdata/tls");
-    let text = format!(
-        "{}tls:\n  cert: {}\n  key: {}\n",
-        yaml(port, &dir.path().display().to_string()),
-        certificates.join("server.pem").display(),
-        certificates.join("server.key").display()
-    );
-    let config = ClusterConfig::from_yaml(&text, "tls.yaml").unwrap();
-    let plan = Plan::build(config).await.unwrap();
-    let service = CoordinatorService::new(plan).await.unwrap();
+    let certificates = test_certificates();
+    let service = tls_coordinator(port, dir.path(), "server.key").await;
     let (stop, stopped) = oneshot::channel::<()>();
     let server = tokio::spawn(service.run("right-token", async {
         let _ = stopped.await;
@@ -187,18 +200,7 @@ async fn tls_round_trip_with_a_test_certificate() {
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_tls_key_that_is_not_a_key_is_named_at_start() {
     let dir = tempfile::tempdir().unwrap();
-    let port = free_port().unwrap();
-    let certificates =
-        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../proto/testdata/tls");
-    let text = format!(
-        "{}tls:\n  cert: {}\n  key: {}\n",
-        yaml(port, &dir.path().display().to_string()),
-        certificates.join("server.pem").display(),
-        certificates.join("ca.pem").display()
-    );
-    let config = ClusterConfig::from_yaml(&text, "tls.yaml").unwrap();
-    let plan = Plan::build(config).await.unwrap();
-    let service = CoordinatorService::new(plan).await.unwrap();
+    let service = tls_coordinator(free_port().unwrap(), dir.path(), "ca.pem").await;
     let error = service
         .run("right-token", std::future::pending())
         .await

@@ -1,7 +1,12 @@
-//! The classical two-view oracle recovers generated camera trajectories (known poses) to within
-//! a few degrees of rotation. Prints its Rac/Tac at 5 degrees. Translation directions of the
-//! shortest pairs (5-12 cm apart, a few pixels of parallax at 192x192) are much less certain,
-//! so only a loose bound is asserted on them.
+//! The classical oracle recovers generated camera trajectories (known poses) to within a few
+//! degrees of rotation and translation direction over all frame pairs; prints Rac/Tac@5.
+//!
+//! Setup: 8 scenes with 6 objects, 6-frame trajectories (5-12 cm between consecutive frames,
+//! so the shortest pairs have only a few pixels of parallax), rendered at 256x256, the
+//! resolution of the real data. At 192x192 the same pipeline's mean translation error is about
+//! 5 degrees instead of about 2.6: parallax is measured in pixels, so resolution matters. On
+//! other seeds most sequences stay around 2 degrees but an occasional one converges to a wrong
+//! motion (e.g. one of 8 on seed 12), so these are the numbers of this seed, not a guarantee.
 
 use evaluation::metrics::{CameraMetrics, trajectory_errors};
 use evaluation::oracle::{ClassicalOracle, ClassicalSettings, PoseOracle};
@@ -10,7 +15,7 @@ use trainer_core::scenes::{Scene, SceneConfig, Trajectory};
 #[test]
 fn classical_oracle_recovers_generated_trajectories() {
     let config = SceneConfig {
-        image_size: 192,
+        image_size: 256,
         objects: 6,
         ..SceneConfig::default()
     };
@@ -43,8 +48,6 @@ fn classical_oracle_recovers_generated_trajectories() {
     assert!(failures <= 1, "{failures} sequences failed");
     assert!(at5.rotation_accuracy >= 0.9, "{metrics:?}");
     assert!(metrics.mean_rotation_error < 3.0, "{metrics:?}");
-    assert!(
-        metrics.at(30).unwrap().translation_accuracy >= 0.6,
-        "{metrics:?}"
-    );
+    assert!(at5.translation_accuracy >= 0.8, "{metrics:?}");
+    assert!(metrics.mean_translation_error < 5.0, "{metrics:?}");
 }

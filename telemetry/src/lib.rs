@@ -7,5 +7,6 @@
 pub mod curves;
 pub mod http;
 pub mod metrics;
+pub mod training;
 
 pub use metrics::{Metric, Registry};

@@ -18,6 +18,7 @@ use proto::v1::{Chunk, PushAck};
 use tokio::sync::{mpsc, watch};
 use tokio_stream::wrappers::UnboundedReceiverStream;
 use tonic::{Request, Response, Status, Streaming};
+use tracing::Instrument;
 
 /// Values per chunk (1 MiB of `f32`): big enough to amortise per-message costs, small enough to
 /// pipeline.
@@ -154,7 +155,18 @@ impl CollectiveService {
 #[tonic::async_trait]
 impl Collective for CollectiveService {
     async fn push(&self, request: Request<Streaming<Chunk>>) -> Result<Response<PushAck>, Status> {
-        let mut stream = request.into_inner();
+        let span = tracing::debug_span!("rpc_collective_push", peer = ?request.remote_addr());
+        self.receive_stream(request.into_inner())
+            .instrument(span)
+            .await
+    }
+}
+
+impl CollectiveService {
+    async fn receive_stream(
+        &self,
+        mut stream: Streaming<Chunk>,
+    ) -> Result<Response<PushAck>, Status> {
         let mut chunks = 0u64;
         let mut generation = None;
         loop {

@@ -3,32 +3,10 @@
 //! (heartbeats). Scraped from `/metrics` (see the `telemetry` crate).
 
 use telemetry::Metric;
+pub use telemetry::training::{GENERATION, GRAD_NORM, LEARNING_RATE, LOSS, STAGE, STEP};
 
-/// Stage of the current assignment.
-pub const STAGE: Metric = Metric::gauge("xfactor_stage", "Stage this worker is training.");
-/// Steps done in the stage.
-pub const STEP: Metric =
-    Metric::gauge("xfactor_step", "Optimiser steps done in the current stage.");
 /// Rank in the group.
 pub const RANK: Metric = Metric::gauge("xfactor_rank", "This worker's rank in its group.");
-/// Group generation.
-pub const GENERATION: Metric = Metric::gauge(
-    "xfactor_generation",
-    "Group generation this worker trains in.",
-);
-/// Loss of the last global batch.
-pub const LOSS: Metric = Metric::gauge(
-    "xfactor_loss",
-    "Loss of the last step's global batch (after the all-reduce).",
-);
-/// Learning rate.
-pub const LEARNING_RATE: Metric =
-    Metric::gauge("xfactor_learning_rate", "Learning rate of the last step.");
-/// Gradient norm before clipping.
-pub const GRAD_NORM: Metric = Metric::gauge(
-    "xfactor_grad_norm",
-    "Global gradient norm of the last step before clipping.",
-);
 /// Samples per second of this worker.
 pub const SAMPLES_PER_SECOND: Metric = Metric::gauge(
     "xfactor_samples_per_second",

@@ -35,14 +35,27 @@ fn main() -> anyhow::Result<()> {
     }
 }
 
+/// Parses a subcommand's `--name value` flags and starts logging as `--log-format` asks.
+fn parse_flags(args: &[String], values: &[&str]) -> anyhow::Result<Flags> {
+    let flags = Flags::parse(args, &[], values).map_err(|e| anyhow::anyhow!("{e}\n{USAGE}"))?;
+    init_logging(flags.get("log-format")).map_err(anyhow::Error::msg)?;
+    Ok(flags)
+}
+
+/// A flag the subcommand cannot do without, with the usage in the error.
+fn required<'a>(flags: &'a Flags, name: &str) -> anyhow::Result<&'a str> {
+    flags
+        .require(name)
+        .map_err(|e| anyhow::anyhow!("{e}\n{USAGE}"))
+}
+
 fn backend(flags: &Flags) -> anyhow::Result<BackendChoice> {
     Ok(flags.get("backend").unwrap_or("cpu").parse()?)
 }
 
 fn transfer(args: &[String]) -> anyhow::Result<()> {
-    let flags = Flags::parse(
+    let flags = parse_flags(
         args,
-        &[],
         &[
             "checkpoint",
             "trajectory",
@@ -52,14 +65,8 @@ fn transfer(args: &[String]) -> anyhow::Result<()> {
             "backend",
             "log-format",
         ],
-    )
-    .map_err(|e| anyhow::anyhow!("{e}\n{USAGE}"))?;
-    init_logging(flags.get("log-format")).map_err(anyhow::Error::msg)?;
-    let required = |name: &str| {
-        flags
-            .require(name)
-            .map_err(|e| anyhow::anyhow!("{e}\n{USAGE}"))
-    };
+    )?;
+    let required = |name: &str| required(&flags, name);
     let request = TransferRequest {
         checkpoint: PathBuf::from(required("checkpoint")?),
         trajectory: required("trajectory")?.to_string(),
@@ -78,9 +85,8 @@ fn transfer(args: &[String]) -> anyhow::Result<()> {
 }
 
 fn evaluate(args: &[String]) -> anyhow::Result<()> {
-    let flags = Flags::parse(
+    let flags = parse_flags(
         args,
-        &[],
         &[
             "checkpoint",
             "out",
@@ -91,14 +97,8 @@ fn evaluate(args: &[String]) -> anyhow::Result<()> {
             "backend",
             "log-format",
         ],
-    )
-    .map_err(|e| anyhow::anyhow!("{e}\n{USAGE}"))?;
-    init_logging(flags.get("log-format")).map_err(anyhow::Error::msg)?;
-    let required = |name: &str| {
-        flags
-            .require(name)
-            .map_err(|e| anyhow::anyhow!("{e}\n{USAGE}"))
-    };
+    )?;
+    let required = |name: &str| required(&flags, name);
     let checkpoint = PathBuf::from(required("checkpoint")?);
     let out = PathBuf::from(required("out")?);
     let mut spec = read_spec(flags.get("spec").map(Path::new))?;

@@ -10,15 +10,25 @@ const SMOOTH_SIGMA: f64 = 1.0;
 /// Standard deviation of the structure-tensor window.
 const TENSOR_SIGMA: f64 = 1.5;
 /// Radius of the non-maximum suppression window.
-const NMS_RADIUS: usize = 3;
+const NMS_RADIUS: usize = 2;
 /// Corners weaker than this share of the strongest are dropped.
-const RELATIVE_THRESHOLD: f64 = 1e-4;
+const RELATIVE_THRESHOLD: f64 = 1e-5;
 /// Radius of the square descriptor patch.
 pub const PATCH_RADIUS: usize = 7;
 /// Patches flatter than this standard deviation (intensities in `[0, 1]`) have no descriptor.
 const MIN_PATCH_STD: f64 = 0.01;
 /// Best match distance must be below this share of the second best.
 const RATIO: f64 = 0.9;
+/// Radius of the square window Lucas-Kanade aligns.
+const TRACK_RADIUS: isize = 7;
+/// Most Gauss-Newton steps of one alignment.
+const TRACK_ITERATIONS: usize = 30;
+/// An alignment has converged when its step is shorter than this, pixels.
+const TRACK_TOLERANCE: f64 = 1e-3;
+/// Farthest an alignment may move a matched corner, pixels.
+const TRACK_REACH: f64 = 2.0;
+/// Least normalised correlation of an aligned window with the frame-0 window.
+const TRACK_MIN_NCC: f64 = 0.9;
 
 /// A grayscale plane with intensities in `[0, 1]`.
 #[derive(Debug, Clone)]
@@ -47,6 +57,20 @@ impl Plane {
             width: image.width,
             values,
         }
+    }
+
+    /// The pre-smoothed luma that corners, descriptors and alignment work on.
+    pub fn smoothed(image: &Image) -> Self {
+        Self::from_image(image).blurred(SMOOTH_SIGMA)
+    }
+
+    /// Bilinear sample at column `x`, row `y` (clamped borders).
+    fn sample(&self, y: f64, x: f64) -> f64 {
+        let (y0, x0) = (y.floor(), x.floor());
+        let (fy, fx) = (y - y0, x - x0);
+        let (y0, x0) = (y0 as isize, x0 as isize);
+        (1.0 - fy) * ((1.0 - fx) * self.at(y0, x0) + fx * self.at(y0, x0 + 1))
+            + fy * ((1.0 - fx) * self.at(y0 + 1, x0) + fx * self.at(y0 + 1, x0 + 1))
     }
 
     fn at(&self, y: isize, x: isize) -> f64 {
@@ -116,7 +140,7 @@ pub struct Feature {
 
 /// The strongest `max_corners` Harris corners of `image` that have a descriptor.
 pub fn detect(image: &Image, max_corners: usize) -> Vec<Feature> {
-    let smooth = Plane::from_image(image).blurred(SMOOTH_SIGMA);
+    let smooth = Plane::smoothed(image);
     let gx = smooth.map(|y, x| (smooth.at(y, x + 1) - smooth.at(y, x - 1)) / 2.0);
     let gy = smooth.map(|y, x| (smooth.at(y + 1, x) - smooth.at(y - 1, x)) / 2.0);
     let xx = gx.map(|y, x| gx.at(y, x).powi(2)).blurred(TENSOR_SIGMA);
@@ -232,6 +256,91 @@ pub fn match_features(a: &[Feature], b: &[Feature], max_shift: f64) -> Vec<(usiz
             (unique && backward[j] == Some(i)).then_some((i, j))
         })
         .collect()
+}
+
+/// Sub-pixel position in `target` of the window of `template` centred on `(x, y)`: translation-
+/// only Lucas-Kanade (inverse compositional) started from `guess`, on the smoothed luma. The
+/// renders are Lambertian under a fixed light, so a surface point keeps its brightness across
+/// views and aligning against frame 0's own window (not the previous frame's) does not drift.
+/// `None` when the alignment does not converge, strays more than [`TRACK_REACH`] pixels from
+/// the guess or ends on a window that correlates poorly with the template's.
+pub fn align(
+    template: &Plane,
+    x: f64,
+    y: f64,
+    target: &Plane,
+    guess: (f64, f64),
+) -> Option<(f64, f64)> {
+    let offsets: Vec<(f64, f64)> = (-TRACK_RADIUS..=TRACK_RADIUS)
+        .flat_map(|dy| (-TRACK_RADIUS..=TRACK_RADIUS).map(move |dx| (dy as f64, dx as f64)))
+        .collect();
+    let values: Vec<f64> = offsets
+        .iter()
+        .map(|(dy, dx)| template.sample(y + dy, x + dx))
+        .collect();
+    let gradients: Vec<(f64, f64)> = offsets
+        .iter()
+        .map(|(dy, dx)| {
+            let (py, px) = (y + dy, x + dx);
+            (
+                (template.sample(py, px + 1.0) - template.sample(py, px - 1.0)) / 2.0,
+                (template.sample(py + 1.0, px) - template.sample(py - 1.0, px)) / 2.0,
+            )
+        })
+        .collect();
+    let (mut a, mut b, mut c) = (0.0, 0.0, 0.0);
+    for (gx, gy) in &gradients {
+        a += gx * gx;
+        b += gx * gy;
+        c += gy * gy;
+    }
+    let det = a * c - b * b;
+    if det <= 1e-12 {
+        return None;
+    }
+    let (mut u, mut v) = guess;
+    let mut converged = false;
+    for _ in 0..TRACK_ITERATIONS {
+        let (mut rx, mut ry) = (0.0, 0.0);
+        for (((dy, dx), t), (gx, gy)) in offsets.iter().zip(&values).zip(&gradients) {
+            let error = target.sample(v + dy, u + dx) - t;
+            rx += gx * error;
+            ry += gy * error;
+        }
+        let step_x = (c * rx - b * ry) / det;
+        let step_y = (a * ry - b * rx) / det;
+        u -= step_x;
+        v -= step_y;
+        if (u - guess.0).abs() > TRACK_REACH || (v - guess.1).abs() > TRACK_REACH {
+            return None;
+        }
+        if step_x.hypot(step_y) < TRACK_TOLERANCE {
+            converged = true;
+            break;
+        }
+    }
+    let warped: Vec<f64> = offsets
+        .iter()
+        .map(|(dy, dx)| target.sample(v + dy, u + dx))
+        .collect();
+    (converged && correlation(&values, &warped) >= TRACK_MIN_NCC).then_some((u, v))
+}
+
+/// Normalised cross-correlation of two equally long windows (0 when either is flat).
+fn correlation(a: &[f64], b: &[f64]) -> f64 {
+    let n = a.len() as f64;
+    let (ma, mb) = (a.iter().sum::<f64>() / n, b.iter().sum::<f64>() / n);
+    let (mut ab, mut aa, mut bb) = (0.0, 0.0, 0.0);
+    for (x, y) in a.iter().zip(b) {
+        ab += (x - ma) * (y - mb);
+        aa += (x - ma) * (x - ma);
+        bb += (y - mb) * (y - mb);
+    }
+    if aa <= 0.0 || bb <= 0.0 {
+        0.0
+    } else {
+        ab / (aa * bb).sqrt()
+    }
 }
 
 #[cfg(test)]

@@ -1,17 +1,20 @@
 //! The classical two-view oracle for real images: Harris corners and patch descriptors matched
 //! between consecutive frames within a small window and followed into tracks from the first
-//! frame (repeated textures defeat matching across wide baselines directly), then an essential
-//! matrix between the first frame and each other frame from the tracked corners (normalised
-//! 8-point, RANSAC on the Sampson error, cheirality), chained into one trajectory.
+//! frame (repeated textures defeat matching across wide baselines directly); each tracked
+//! corner is then moved to where frame 0's window around it aligns best (sub-pixel
+//! Lucas-Kanade against frame 0, so tracks do not drift), and an essential matrix between the
+//! first frame and each other frame is fitted to the aligned corners (normalised 8-point,
+//! RANSAC on the Sampson error, Levenberg-Marquardt, cheirality).
 //!
-//! Chaining: every frame is estimated against frame 0 directly (no drift from composing
-//! consecutive relative poses), which fixes rotations and translation directions. Each pair's translation has its
-//! own unknown length; lengths are made consistent through the depths of frame 0's corners,
-//! which every pair triangulates in its own baseline units: the length of pair `i` relative to
-//! the anchor pair (the last estimated frame, usually the widest baseline) is the median ratio
-//! of the anchor's depths to pair `i`'s over the corners both keep as inliers (1 when fewer
-//! than [`MIN_SHARED_DEPTHS`] are shared).
+//! Those pairwise estimates only start a bundle adjustment: with the depths of one pair (the
+//! anchor) every frame is resected, corners without a depth are triangulated, and all motions
+//! and inverse depths are adjusted together on the robust reprojection error. Sharing frame 0's
+//! structure across frames is what makes short baselines' translation directions accurate and
+//! all translation lengths consistent (pairs `i < j` with `i > 0` mix the lengths of two
+//! frames). Every frame with an essential matrix is tried as the anchor; the bundle with the
+//! lowest cost wins.
 
+mod bundle;
 mod essential;
 mod features;
 
@@ -20,13 +23,23 @@ use serde::{Deserialize, Serialize};
 use trainer_core::augment::Image;
 use trainer_core::scenes::CameraPose;
 
+use self::bundle::{Bundle, Free, Observation};
 use self::essential::{Ransac, RelativePose, relative_pose};
-use self::features::{Feature, detect, match_features};
+use self::features::{Feature, Plane, align, detect, match_features};
 use super::{OracleError, PoseOracle};
 use crate::geometry::pose;
 
 /// Fewest corners two pairs must share to relate their translation lengths.
 const MIN_SHARED_DEPTHS: usize = 5;
+/// Reprojection error, pixels, up to which the bundle's loss is quadratic (Huber threshold).
+const HUBER_PIXELS: f64 = 1.0;
+/// Observations further off than this many Huber thresholds after the first adjustment are
+/// dropped before the second.
+const OUTLIER_HUBERS: f64 = 3.0;
+/// Levenberg-Marquardt iterations of a single frame's resection.
+const RESECTION_ITERATIONS: usize = 30;
+/// Levenberg-Marquardt iterations of a whole-bundle adjustment.
+const BUNDLE_ITERATIONS: usize = 50;
 
 /// Knobs of the classical oracle.
 #[derive(Debug, Clone, Copy, PartialEq, Serialize, Deserialize)]
@@ -148,6 +161,7 @@ impl PoseOracle for ClassicalOracle {
             return Err(Self::failure("frames must be square".to_string()));
         }
         let side = first_frame.width;
+        let planes: Vec<Plane> = frames.iter().map(Plane::smoothed).collect();
         let features: Vec<Vec<Feature>> = frames
             .iter()
             .map(|frame| detect(frame, self.settings.max_corners))
@@ -155,7 +169,8 @@ impl PoseOracle for ClassicalOracle {
         let first = &features[0];
         // tracked[c] = index in the current frame of frame-0 corner c, while it is followed.
         let mut tracked: Vec<Option<usize>> = (0..first.len()).map(Some).collect();
-        let mut pairs = Vec::with_capacity(frames.len() - 1);
+        let mut pairs = vec![None];
+        let mut observations = Vec::new();
         for index in 1..frames.len() {
             let links = match_features(
                 &features[index - 1],
@@ -167,38 +182,163 @@ impl PoseOracle for ClassicalOracle {
                 next[a] = Some(b);
             }
             tracked = tracked.iter().map(|t| t.and_then(|k| next[k])).collect();
-            let tracks: Vec<(usize, usize)> = tracked
-                .iter()
-                .enumerate()
-                .filter_map(|(c, t)| t.map(|k| (c, k)))
-                .collect();
-            pairs.push(self.against_first(first, &features[index], &tracks, index, side)?);
-        }
-        let depth_of = |(relative, corners): &(RelativePose, Vec<usize>)| -> Vec<Option<f64>> {
-            let mut by_corner = vec![None; first.len()];
-            for (corner, depth) in corners.iter().zip(&relative.depths) {
-                by_corner[*corner] = *depth;
+            // The matched corners, moved to where frame 0's window aligns best.
+            let mut aligned = features[index].clone();
+            let mut tracks = Vec::new();
+            for (c, t) in tracked.iter_mut().enumerate() {
+                let Some(k) = *t else {
+                    continue;
+                };
+                let corner = &first[c];
+                let guess = (aligned[k].x, aligned[k].y);
+                match align(&planes[0], corner.x, corner.y, &planes[index], guess) {
+                    Some((x, y)) => {
+                        (aligned[k].x, aligned[k].y) = (x, y);
+                        tracks.push((c, k));
+                    }
+                    None => *t = None,
+                }
             }
-            by_corner
+            observations.extend(tracks.iter().map(|&(point, k)| Observation {
+                point,
+                frame: index,
+                position: self.normalised(&aligned[k], side),
+            }));
+            pairs.push(
+                self.against_first(first, &aligned, &tracks, index, side)
+                    .ok(),
+            );
+        }
+        if frames.len() > 1 && pairs.iter().all(Option::is_none) {
+            return Err(Self::failure(
+                "no frame has an essential matrix against frame 0".to_string(),
+            ));
+        }
+        let rays: Vec<Vector3<f64>> = first
+            .iter()
+            .map(|f| self.normalised(f, side).push(1.0))
+            .collect();
+        let delta = HUBER_PIXELS / self.focal(side);
+        let best = (1..frames.len())
+            .filter(|&anchor| pairs[anchor].is_some())
+            .map(|anchor| {
+                let bundle = adjusted(&rays, &pairs, anchor, &observations, delta);
+                (bundle.cost(&observations, delta), bundle)
+            })
+            .min_by(|a, b| a.0.total_cmp(&b.0));
+        let Some((_, bundle)) = best else {
+            return Ok(vec![CameraPose::identity()]);
         };
-        let anchor = pairs.last().map(depth_of).unwrap_or_default();
-        let mut poses = vec![CameraPose::identity()];
-        for pair in &pairs {
-            let depths = depth_of(pair);
-            let ratios: Vec<f64> = anchor
+        Ok(bundle
+            .rotations
+            .iter()
+            .zip(&bundle.translations)
+            .map(|(r, t)| pose(r, t))
+            .collect())
+    }
+}
+
+/// Depth of each frame-0 corner in `pair`'s baseline units, where it triangulated.
+fn depths_by_corner(pair: &(RelativePose, Vec<usize>), corners: usize) -> Vec<Option<f64>> {
+    let mut by_corner = vec![None; corners];
+    for (corner, depth) in pair.1.iter().zip(&pair.0.depths) {
+        by_corner[*corner] = *depth;
+    }
+    by_corner
+}
+
+/// The bundle started from the depths of pair `anchor` (its baseline is the unit length):
+/// each frame resected in turn from its own essential matrix (translation length from the
+/// median depth ratio to the anchor) or from the previous frame's pose, whichever fits
+/// better; corners the anchor lacks triangulated from their widest-parallax view; then all
+/// adjusted together, outlying observations dropped, and adjusted again.
+fn adjusted(
+    rays: &[Vector3<f64>],
+    pairs: &[Option<(RelativePose, Vec<usize>)>],
+    anchor: usize,
+    observations: &[Observation],
+    delta: f64,
+) -> Bundle {
+    let frames = pairs.len();
+    let anchor_depths = pairs[anchor]
+        .as_ref()
+        .map(|pair| depths_by_corner(pair, rays.len()))
+        .unwrap_or_default();
+    let mut bundle = Bundle {
+        rays: rays.to_vec(),
+        inverse_depths: anchor_depths
+            .iter()
+            .map(|d| d.map_or(0.0, |d| 1.0 / d))
+            .collect(),
+        rotations: vec![Matrix3::identity(); frames],
+        translations: vec![Vector3::zeros(); frames],
+    };
+    for (frame, own) in pairs.iter().enumerate().skip(1) {
+        let seen: Vec<Observation> = observations
+            .iter()
+            .filter(|o| o.frame == frame)
+            .copied()
+            .collect();
+        let mut free = Free {
+            frames: vec![false; frames],
+            points: false,
+        };
+        free.frames[frame] = true;
+        let mut starts = vec![(bundle.rotations[frame - 1], bundle.translations[frame - 1])];
+        if let Some(pair) = own {
+            let ratios: Vec<f64> = anchor_depths
                 .iter()
-                .zip(&depths)
-                .filter_map(|(a, d)| Some(a.as_ref()? / d.as_ref()?))
+                .zip(depths_by_corner(pair, rays.len()))
+                .filter_map(|(a, d)| Some(a.as_ref()? / d?))
                 .collect();
             let length = if ratios.len() >= MIN_SHARED_DEPTHS {
                 median(ratios)
             } else {
                 1.0
             };
-            let rotation: Matrix3<f64> = pair.0.rotation;
-            let translation: Vector3<f64> = pair.0.direction * length;
-            poses.push(pose(&rotation, &translation));
+            starts.push((pair.0.rotation, pair.0.direction * length));
         }
-        Ok(poses)
+        let resected = starts
+            .into_iter()
+            .map(|(rotation, translation)| {
+                let mut candidate = bundle.clone();
+                candidate.rotations[frame] = rotation;
+                candidate.translations[frame] = translation;
+                let cost = candidate.adjust(&seen, &free, delta, RESECTION_ITERATIONS);
+                (cost, candidate)
+            })
+            .min_by(|a, b| a.0.total_cmp(&b.0));
+        if let Some((_, candidate)) = resected {
+            bundle = candidate;
+        }
     }
+    for point in 0..rays.len() {
+        if bundle.inverse_depths[point] > 0.0 {
+            continue;
+        }
+        let widest = observations
+            .iter()
+            .filter(|o| o.point == point)
+            .filter_map(|o| bundle.triangulate(o))
+            .max_by(|a, b| a.1.total_cmp(&b.1));
+        if let Some((depth, _)) = widest {
+            bundle.inverse_depths[point] = 1.0 / depth;
+        }
+    }
+    let free = Free {
+        frames: vec![true; frames],
+        points: true,
+    };
+    bundle.adjust(observations, &free, delta, BUNDLE_ITERATIONS);
+    let kept: Vec<Observation> = observations
+        .iter()
+        .filter(|o| {
+            bundle
+                .residual(o)
+                .is_some_and(|r| r.norm() < OUTLIER_HUBERS * delta)
+        })
+        .copied()
+        .collect();
+    bundle.adjust(&kept, &free, delta, BUNDLE_ITERATIONS);
+    bundle
 }
