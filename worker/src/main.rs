@@ -38,6 +38,9 @@ fn tls_options(flags: &Flags) -> anyhow::Result<Option<WorkerTls>> {
 }
 
 fn main() -> anyhow::Result<()> {
+    // Before any thread exists: large buffers (gradients, chunks, tensors) are reused from the
+    // heap instead of being mapped, faulted in and unmapped every step.
+    let tuning = trainer_core::allocator::keep_freed_memory();
     let args: Vec<String> = std::env::args().skip(1).collect();
     if args.first().map(String::as_str) == Some("allreduce-bench") {
         let flags = Flags::parse(
@@ -80,6 +83,7 @@ fn main() -> anyhow::Result<()> {
     )
     .map_err(|e| anyhow::anyhow!("{e}\n{USAGE}"))?;
     init_logging(flags.get("log-format")).map_err(anyhow::Error::msg)?;
+    tracing::debug!(?tuning, "allocator tuned");
     let token = match (flags.get("token"), flags.get("token-env")) {
         (Some(token), _) => token.to_string(),
         (None, Some(var)) => {
