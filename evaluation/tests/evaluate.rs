@@ -1,6 +1,16 @@
 //! After a short CPU training run on generated scenes that share camera motions across scenes,
 //! the trained model's TPS and probe numbers beat those of the untrained model; the report
 //! (JSON, Markdown, figures) shows both. Prints the numbers.
+//!
+//! Why 16x16 frames, 1300 steps and a 2e-3 peak learning rate: the ground-truth oracle reads a
+//! render's pose from the generated frame with the nearest 8x8 thumbnail. After 200 steps at
+//! 32x32 (peak 1e-3) the renders barely depend on the pose latent, so all five renders of a
+//! transfer matched the same generated frame, their relative translations were zero and every
+//! frame pair scored the conventional 90 degrees (TPS AUC@30 0.004 vs 0.000 untrained). At 16x16
+//! a step is about four times cheaper, and 1300 steps at a higher peak rate teach the renderer
+//! to move the camera in about 70 s on 2 cores (a 3e-3 peak moved the renders as far but left
+//! the probe no better than the untrained model's). TPS uses all 8 frames of 96 transfers (2688
+//! frame pairs) so the comparison is not decided by a handful of renders.
 
 use std::time::Instant;
 
@@ -15,8 +25,8 @@ use trainer_core::synthetic::SyntheticDataset;
 use trainer_core::trainer::{StageObjective, TrainConfig, Trainer};
 use trainer_core::{XFactor, XFactorConfig};
 
-const SIDE: usize = 32;
-const STEPS: u64 = 200;
+const SIDE: usize = 16;
+const STEPS: u64 = 1300;
 const SCENES: u64 = 6;
 const TRAJECTORIES: u64 = 8;
 const FRAMES: usize = 8;
@@ -73,7 +83,7 @@ fn trained_model_beats_untrained_on_tps_and_probe() {
         shards: 2,
         schedule: Schedule {
             initial_lr: 1e-5,
-            peak_lr: 1e-3,
+            peak_lr: 2e-3,
             final_lr: 1e-4,
             warmup_steps: 20,
             total_steps: STEPS,
@@ -93,7 +103,8 @@ fn trained_model_beats_untrained_on_tps_and_probe() {
         scenes: SCENES,
         trajectories: TRAJECTORIES,
         frames: FRAMES,
-        tps_pairs: 24,
+        tps_pairs: 96,
+        tps_frames: FRAMES,
         probe: ProbeSpec {
             steps: 600,
             batch: 64,
