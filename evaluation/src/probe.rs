@@ -173,6 +173,9 @@ pub fn run_probe(
     };
     let normalised: Vec<Vec<f32>> = inputs.iter().map(|l| normalise(l)).collect();
 
+    // burn's initialisers draw from the device's generator: seed it so the probe, like every
+    // other draw here, follows from the evaluation seed.
+    device.seed(seed ^ PROBE_TAG);
     let mut probe = Probe::new(dims, spec.width, device);
     let mut optimiser = AdamWConfig::new().with_weight_decay(0.0).init();
     let mut stream = Stream::new(&[seed, PROBE_TAG]);
