@@ -554,6 +554,10 @@ impl ClusterConfig {
                 ));
             }
         }
+        if let Some(spec) = &self.evaluate {
+            spec.validate()
+                .map_err(|e| format!("evaluate.{e}{}", at(&["evaluate"])))?;
+        }
         if self.workers.minimum.0 > self.workers.expected.0 {
             return Err(format!(
                 "workers.minimum ({}) exceeds workers.expected ({}){}",
@@ -723,6 +727,11 @@ checkpoint:
         assert!(error.contains("tps_pairz"), "{error}");
         assert!(error.contains("evaluate"), "{error}");
         assert!(error.contains("line"), "{error}");
+        let limits = error_of(&format!(
+            "{GOOD}evaluate:\n  scenes: 3\n  probe: {{test_scenes: 3}}\n"
+        ));
+        assert!(limits.contains("evaluate.probe.test_scenes"), "{limits}");
+        assert!(limits.contains("line"), "{limits}");
     }
 
     #[test]

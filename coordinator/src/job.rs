@@ -172,6 +172,15 @@ impl JobState {
     /// A job at its start, or where `durable` (read back after a coordinator restart) left it.
     pub fn new(plan: Plan, timing: Timing, durable: Option<Durable>) -> Self {
         let base = incarnation_base();
+        let durable = durable.map(|mut durable| {
+            if durable.stage == EVALUATE_STAGE && durable.stage2_final.is_none() {
+                tracing::warn!(
+                    "the saved job state finished stage 2 before evaluation existed; nothing to evaluate"
+                );
+                durable.stage = EVALUATE_STAGE + 1;
+            }
+            durable
+        });
         let job = plan.config.job.0.clone();
         let durable = durable.unwrap_or(Durable {
             job: job.clone(),

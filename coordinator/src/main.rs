@@ -102,6 +102,9 @@ async fn status(flags: &Flags) -> anyhow::Result<()> {
     let mut endpoint = tonic::transport::Endpoint::from_shared(address.to_string())
         .with_context(|| format!("`{address}` is not a URL"))?;
     if let Some(ca) = flags.get("tls-ca") {
+        if endpoint.uri().scheme_str() != Some("https") {
+            bail!("--tls-ca needs an https:// address, got `{address}`");
+        }
         let domain = match flags.get("tls-domain") {
             Some(domain) => domain.to_string(),
             None => endpoint.uri().host().unwrap_or("localhost").to_string(),

@@ -20,7 +20,7 @@ use trainer_core::data::store::DataRoot;
 
 use telemetry::Registry;
 
-use crate::job::{Commit, Durable, JobState, Report, Timing};
+use crate::job::{Commit, Durable, EVALUATE_STAGE, JobState, Report, Timing};
 use crate::metrics;
 use crate::plan::Plan;
 
@@ -162,9 +162,12 @@ impl CoordinatorService {
         if let Some(tls) = tls {
             let settings = proto::tls::server_config(Path::new(&tls.cert.0), Path::new(&tls.key.0))
                 .map_err(|e| ServeError::Tls(e.to_string()))?;
-            builder = builder
-                .tls_config(settings)
-                .map_err(|e| ServeError::Tls(e.to_string()))?;
+            builder = builder.tls_config(settings).map_err(|e| {
+                ServeError::Tls(format!(
+                    "certificate {} with key {}: {e}",
+                    tls.cert.0, tls.key.0
+                ))
+            })?;
         }
         let finished = Arc::new(Notify::new());
         let stop_server = finished.clone();
@@ -189,7 +192,7 @@ impl CoordinatorService {
                     if changed {
                         service.changed.notify_waiters();
                     }
-                    for finished_stage in stage..now_stage.min(3) {
+                    for finished_stage in stage..now_stage.min(EVALUATE_STAGE) {
                         service.write_curves(finished_stage).await;
                     }
                     stage = stage.max(now_stage);

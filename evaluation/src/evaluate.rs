@@ -54,6 +54,40 @@ pub struct EvaluationSpec {
     pub compare_untrained: bool,
 }
 
+impl EvaluationSpec {
+    /// Checks the limits the evaluation relies on, naming the key, so a cluster YAML is refused
+    /// when it is read rather than after training.
+    pub fn validate(&self) -> Result<(), String> {
+        let checks = [
+            (
+                self.scenes < 2,
+                "scenes",
+                "at least 2 (TPS renders one scene along another's motion)",
+            ),
+            (
+                self.trajectories < 2,
+                "trajectories",
+                "at least 2 (TPS compares against an unrelated one)",
+            ),
+            (self.frames < 2, "frames", "at least 2"),
+            (self.tps_frames < 2, "tps_frames", "at least 2"),
+            (self.tps_pairs == 0, "tps_pairs", "at least 1"),
+            (self.probe.steps == 0, "probe.steps", "at least 1"),
+            (self.probe.batch == 0, "probe.batch", "at least 1"),
+            (self.probe.width == 0, "probe.width", "at least 1"),
+            (
+                self.probe.test_scenes == 0 || self.probe.test_scenes >= self.scenes,
+                "probe.test_scenes",
+                "at least 1 and fewer than `scenes` (the rest train the probe)",
+            ),
+        ];
+        match checks.iter().find(|(bad, _, _)| *bad) {
+            Some((_, key, expected)) => Err(format!("{key}: expected {expected}")),
+            None => Ok(()),
+        }
+    }
+}
+
 impl Default for EvaluationSpec {
     /// 6 scenes x 8 trajectories x 8 frames, 32 TPS pairs of 5 frames, 8 reconstructed
     /// sequences, the default probe, the ground-truth oracle, an untrained baseline.
@@ -343,14 +377,9 @@ pub fn run_evaluation(
 ) -> Result<EvaluationReport, EvalError> {
     let started = Instant::now();
     let _span = tracing::info_span!("evaluate", checkpoint = %weights.display()).entered();
+    spec.validate().map_err(EvalError::Invalid)?;
     std::fs::create_dir_all(out_dir).map_err(|e| io_error(out_dir, e))?;
     let (model, config) = checkpoint::load(weights, device)?;
-    if spec.frames < 2 || spec.probe.test_scenes >= spec.scenes {
-        return Err(EvalError::Invalid(format!(
-            "need at least 2 frames and a training scene besides the {} held-out ones (frames {}, scenes {})",
-            spec.probe.test_scenes, spec.frames, spec.scenes
-        )));
-    }
     let scene_config = SceneConfig {
         image_size: config.image_size,
         ..SceneConfig::default()

@@ -14,6 +14,12 @@ use crate::metrics::Registry;
 /// The longest request head accepted; scrapers send a few hundred bytes.
 const MAX_REQUEST_BYTES: usize = 8 * 1024;
 
+/// Connections served at once; more wait to be accepted, so a flood cannot exhaust sockets.
+const MAX_CONNECTIONS: usize = 64;
+
+/// The whole exchange (reading the request, writing the page) must finish within this.
+const REQUEST_DEADLINE: Duration = Duration::from_secs(5);
+
 /// Why the endpoint could not start.
 #[derive(Debug, thiserror::Error)]
 pub enum HttpError {
@@ -36,15 +42,26 @@ pub async fn serve(address: &str, registry: Arc<Registry>) -> Result<SocketAddr,
     };
     let listener = TcpListener::bind(address).await.map_err(bind_error)?;
     let bound = listener.local_addr().map_err(bind_error)?;
+    let slots = Arc::new(tokio::sync::Semaphore::new(MAX_CONNECTIONS));
     tokio::spawn(async move {
         loop {
+            let Ok(slot) = Arc::clone(&slots).acquire_owned().await else {
+                return;
+            };
             match listener.accept().await {
                 Ok((stream, peer)) => {
                     let registry = Arc::clone(&registry);
                     tokio::spawn(async move {
-                        if let Err(error) = answer(stream, &registry).await {
-                            tracing::debug!(%peer, %error, "metrics request failed");
+                        let answered =
+                            tokio::time::timeout(REQUEST_DEADLINE, answer(stream, &registry)).await;
+                        match answered {
+                            Ok(Ok(())) => {}
+                            Ok(Err(error)) => {
+                                tracing::debug!(%peer, %error, "metrics request failed");
+                            }
+                            Err(_) => tracing::debug!(%peer, "metrics request timed out"),
                         }
+                        drop(slot);
                     });
                 }
                 Err(error) => {
@@ -71,9 +88,7 @@ async fn answer(mut stream: TcpStream, registry: &Registry) -> std::io::Result<(
         }
         std::io::Result::Ok(())
     };
-    tokio::time::timeout(Duration::from_secs(5), read)
-        .await
-        .map_err(|_| std::io::Error::new(std::io::ErrorKind::TimedOut, "slow request"))??;
+    read.await?;
     let request_line = head.split(|&b| b == b'\n').next().unwrap_or_default();
     let request_line = String::from_utf8_lossy(request_line);
     let mut parts = request_line.split_whitespace();

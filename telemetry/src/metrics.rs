@@ -89,8 +89,9 @@ impl Registry {
         self.update(metric, labels, |slot| *slot = slot.max(total));
     }
 
-    /// A series' current value, if it was ever set.
-    pub fn value(&self, metric: &Metric, labels: &[(&str, &str)]) -> Option<f64> {
+    /// A series' current value, if it was ever set (for tests of what was recorded).
+    #[cfg(test)]
+    fn value(&self, metric: &Metric, labels: &[(&str, &str)]) -> Option<f64> {
         let families = self.families.lock().unwrap_or_else(PoisonError::into_inner);
         families
             .get(metric.name)

@@ -32,6 +32,12 @@ pub fn run_rank(flags: &Flags) -> anyhow::Result<()> {
     let repeats: usize = flags.get("repeats").unwrap_or("5").parse()?;
     let chunk_values: Option<usize> = flags.get("chunk-values").map(str::parse).transpose()?;
     let threads: usize = flags.get("threads").unwrap_or("1").parse()?;
+    if threads == 0 {
+        anyhow::bail!("--threads must be at least 1");
+    }
+    if rank >= peers.len() {
+        anyhow::bail!("--rank {rank} is not below the {} peers given", peers.len());
+    }
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(threads)
         .enable_all()

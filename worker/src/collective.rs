@@ -96,8 +96,23 @@ pub struct Link {
 pub struct PeerTls {
     /// This rank's certificate and key, for its Collective service.
     pub server: tonic::transport::ServerTlsConfig,
-    /// The CA and name that peers' certificates must match.
-    pub client: tonic::transport::ClientTlsConfig,
+    /// The CA that signed the peers' certificates.
+    pub ca: std::path::PathBuf,
+    /// The name every peer's certificate must carry; `None`: each peer's own host (name or
+    /// IP address), so one certificate per host works.
+    pub domain: Option<String>,
+}
+
+impl PeerTls {
+    fn client_for(&self, address: &str) -> Result<tonic::transport::ClientTlsConfig, String> {
+        let host = address
+            .rsplit_once(':')
+            .map_or(address, |(host, _)| host)
+            .trim_start_matches('[')
+            .trim_end_matches(']');
+        proto::tls::client_config(&self.ca, self.domain.as_deref().unwrap_or(host))
+            .map_err(|e| e.to_string())
+    }
 }
 
 type Inbound = Result<Chunk, String>;
@@ -285,7 +300,7 @@ impl Ring {
             .map_err(|e| failed(e.to_string()))?;
         if let Some(tls) = &link.tls {
             endpoint = endpoint
-                .tls_config(tls.client.clone())
+                .tls_config(tls.client_for(address).map_err(failed)?)
                 .map_err(|e| failed(e.to_string()))?;
         }
         let endpoint = endpoint

@@ -87,9 +87,12 @@ impl WorkerTls {
         let Some((cert, key)) = &self.identity else {
             return Ok(None);
         };
+        let server = proto::tls::server_config(cert, key)?;
+        proto::tls::client_config(&self.ca, self.domain.as_deref().unwrap_or("localhost"))?;
         Ok(Some(PeerTls {
-            server: proto::tls::server_config(cert, key)?,
-            client: self.client("localhost")?,
+            server,
+            ca: self.ca.clone(),
+            domain: self.domain.clone(),
         }))
     }
 }
@@ -239,12 +242,27 @@ async fn watch_for_termination(progress: Arc<Progress>) {
                 return;
             }
         };
+    let interrupted = || async {
+        if tokio::signal::ctrl_c().await.is_err() {
+            std::future::pending::<()>().await;
+        }
+    };
     tokio::select! {
         _ = terminate.recv() => {}
-        _ = tokio::signal::ctrl_c() => {}
+        () = interrupted() => {}
     }
-    tracing::warn!("shutdown requested: finishing the current step, then leaving the job");
+    tracing::warn!(
+        "shutdown requested: finishing the current step, then leaving the job (signal again to stop at once)"
+    );
     progress.stopping.send_replace(true);
+    tokio::select! {
+        _ = terminate.recv() => {}
+        () = interrupted() => {}
+    }
+    tracing::warn!(
+        "second signal: stopping now; the last committed checkpoint stays the resume point"
+    );
+    std::process::exit(130);
 }
 
 /// Tells the coordinator this worker is gone, so its group re-forms at once.
@@ -253,10 +271,18 @@ fn leave(runtime: &Runtime, client: &mut Client, progress: &Progress) -> anyhow:
         worker_id: progress.worker.load(Ordering::SeqCst),
         reason: "SIGTERM".into(),
     };
-    match runtime.block_on(client.leave(request)) {
-        Ok(_) => tracing::info!("left the job"),
-        Err(status) => {
+    let said = runtime.block_on(async {
+        tokio::time::timeout(Duration::from_secs(5), client.leave(request)).await
+    });
+    match said {
+        Ok(Ok(_)) => tracing::info!("left the job"),
+        Ok(Err(status)) => {
             tracing::warn!(error = %status.message(), "the coordinator did not hear the leave; it will notice the silence")
+        }
+        Err(_) => {
+            tracing::warn!(
+                "the coordinator did not answer the leave in 5 s; it will notice the silence"
+            )
         }
     }
     Ok(())
@@ -284,8 +310,13 @@ async fn connect(address: &str, token: &str, tls: Option<&WorkerTls>) -> anyhow:
         .with_context(|| format!("coordinator address `{address}` is not a URL"))?
         .connect_timeout(Duration::from_secs(2));
     if let Some(tls) = tls {
+        if endpoint.uri().scheme_str() != Some("https") {
+            bail!("--tls-ca needs an https:// coordinator address, got `{address}`");
+        }
         let host = endpoint.uri().host().unwrap_or("localhost").to_string();
-        endpoint = endpoint.tls_config(tls.client(&host)?)?;
+        endpoint = endpoint
+            .tls_config(tls.client(&host)?)
+            .with_context(|| format!("TLS with the CA {}", tls.ca.display()))?;
     }
     let deadline = Instant::now() + Duration::from_secs(60);
     let channel = loop {
@@ -598,6 +629,9 @@ fn evaluate(
         &assignment.init_weights_from,
         &weights_dir,
     ))?;
+    if *progress.stopping.borrow() {
+        return Ok(Ending::Stopping);
+    }
     tracing::info!(weights = %assignment.init_weights_from, "evaluating");
     let report = evaluation::run_evaluation(
         &spec,
@@ -610,9 +644,6 @@ fn evaluate(
         seconds = report.seconds,
         "evaluation done; report.json, report.md and figures written"
     );
-    if *progress.stopping.borrow() {
-        return Ok(Ending::Stopping);
-    }
     let location = format!(
         "{}/g{}",
         assignment.checkpoint_prefix, assignment.generation

@@ -27,7 +27,8 @@ fn with_test_certificate() -> Link {
         tls: Some(PeerTls {
             server: proto::tls::server_config(&tls.join("server.pem"), &tls.join("server.key"))
                 .unwrap(),
-            client: proto::tls::client_config(&tls.join("ca.pem"), "localhost").unwrap(),
+            ca: tls.join("ca.pem"),
+            domain: None,
         }),
         ..plain()
     }
