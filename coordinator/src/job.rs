@@ -690,6 +690,15 @@ impl JobState {
             .is_some_and(|g| g.members.first() == Some(&worker))
     }
 
+    /// Ids of the registered workers whose heartbeats are on time.
+    pub fn live_workers(&self) -> Vec<u64> {
+        self.members
+            .iter()
+            .filter(|(_, m)| !m.lost)
+            .map(|(&id, _)| id)
+            .collect()
+    }
+
     /// Checksum disagreements so far.
     pub fn mismatches(&self) -> usize {
         self.report.checksum_mismatches.len()

@@ -87,3 +87,15 @@ pub fn record_status(
     registry.raise_to(&CHECKSUM_MISMATCHES, &[], mismatches as f64);
     registry.set(&SAMPLES_PER_SECOND, &[], samples_per_second);
 }
+
+/// Drops the per-worker series of workers that are no longer members (lost, left, or from
+/// before a re-registration), so `/metrics` shows the live group only.
+pub fn forget_departed(registry: &Registry, live: &[String]) {
+    for metric in [
+        &WORKER_SAMPLES_PER_SECOND,
+        &WORKER_ALLREDUCE_SECONDS,
+        &WORKER_SKIPPED_FRAMES,
+    ] {
+        registry.retain(metric, "worker", |id| live.iter().any(|l| l == id));
+    }
+}

@@ -104,6 +104,8 @@ impl CoordinatorService {
     }
 
     fn publish(&self, state: &JobState) {
+        let live: Vec<String> = state.live_workers().iter().map(u64::to_string).collect();
+        metrics::forget_departed(&self.metrics, &live);
         metrics::record_status(
             &self.metrics,
             &state.status(),

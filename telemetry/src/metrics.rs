@@ -98,6 +98,22 @@ impl Registry {
             .and_then(|family| family.series.get(&render_labels(labels)).copied())
     }
 
+    /// Drops the series of `metric` whose `label` value fails `keep`: a process that labels
+    /// series by peer removes the peers that are gone, so stale values do not linger.
+    pub fn retain(&self, metric: &Metric, label: &str, keep: impl Fn(&str) -> bool) {
+        let mut families = self.families.lock().unwrap_or_else(PoisonError::into_inner);
+        if let Some(family) = families.get_mut(metric.name) {
+            let prefix = format!("{label}=\"");
+            family.series.retain(|labels, _| {
+                labels
+                    .split(&prefix)
+                    .nth(1)
+                    .and_then(|rest| rest.split('"').next())
+                    .is_none_or(&keep)
+            });
+        }
+    }
+
     /// Every series in the Prometheus text exposition format.
     pub fn render(&self) -> String {
         let families = self.families.lock().unwrap_or_else(PoisonError::into_inner);
@@ -180,6 +196,23 @@ mod tests {
         registry.raise_to(&BEATS, &[("rank", "0")], 7.0);
         registry.raise_to(&BEATS, &[("rank", "0")], 2.0);
         assert_eq!(registry.value(&BEATS, &[("rank", "0")]), Some(7.0));
+    }
+
+    #[test]
+    fn series_of_departed_peers_are_dropped() {
+        let registry = Registry::new();
+        for worker in ["1", "2", "3"] {
+            registry.set(&STEP, &[("worker", worker)], 1.0);
+        }
+        registry.set(&STEP, &[], 5.0);
+        registry.retain(&STEP, "worker", |w| w != "2");
+        let text = registry.render();
+        assert!(!text.contains("worker=\"2\""), "{text}");
+        assert!(
+            text.contains("worker=\"1\"") && text.contains("worker=\"3\""),
+            "{text}"
+        );
+        assert!(text.contains("xfactor_step 5\n"), "{text}");
     }
 
     #[test]
