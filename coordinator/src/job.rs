@@ -596,12 +596,7 @@ impl JobState {
             data_json: serde_json::to_string(&plan.data).unwrap_or_default(),
             checksum_every: config.workers.checksum_every.0,
             lpips_weights: plan.lpips_weights.clone().unwrap_or_default(),
-            device: match config.workers.device {
-                crate::config::DeviceChoice::Auto => "auto",
-                crate::config::DeviceChoice::Cpu => "cpu",
-                crate::config::DeviceChoice::Wgpu => "wgpu",
-            }
-            .into(),
+            device: config.workers.device.name().into(),
             evaluation_json: String::new(),
         }
     }
@@ -624,12 +619,7 @@ impl JobState {
             ),
             model_config_json: serde_json::to_string(&self.plan.model).unwrap_or_default(),
             evaluation_json: serde_json::to_string(&config.evaluate).unwrap_or_default(),
-            device: match config.workers.device {
-                crate::config::DeviceChoice::Auto => "auto",
-                crate::config::DeviceChoice::Cpu => "cpu",
-                crate::config::DeviceChoice::Wgpu => "wgpu",
-            }
-            .into(),
+            device: config.workers.device.name().into(),
             ..Assignment::default()
         }
     }

@@ -61,17 +61,7 @@ fn trained_model_beats_untrained_on_tps_and_probe() {
             ..SceneConfig::default()
         },
     );
-    let model_config = XFactorConfig {
-        image_size: SIDE,
-        patch_size: 4,
-        width: 64,
-        num_heads: 4,
-        pose_layers: 2,
-        render_layers: 2,
-        pose_dim: 16,
-        global_tokens: 4,
-        round_qkv_bf16: false,
-    };
+    let model_config = XFactorConfig::small(SIDE);
     let config = TrainConfig {
         seed: 0,
         objective: StageObjective::Stage1(Stage1Config {

@@ -97,6 +97,23 @@ impl XFactorConfig {
         }
     }
 
+    /// The smallest model whose renderer learns to follow camera motion within a minute or so
+    /// of CPU training (patch 4, width 64, 4 heads, 2 + 2 layers, `Cp = 16`, `G = 4`): the
+    /// learning and evaluation tests.
+    pub fn small(image_size: usize) -> Self {
+        Self {
+            image_size,
+            patch_size: 4,
+            width: 64,
+            num_heads: 4,
+            pose_layers: 2,
+            render_layers: 2,
+            pose_dim: 16,
+            global_tokens: 4,
+            round_qkv_bf16: false,
+        }
+    }
+
     /// A model small enough to train in seconds on a laptop CPU (patch 4, width 32, 2 heads,
     /// 1 + 1 layers, `Cp = 8`, `G = 2`): tests, demos and smoke runs.
     pub fn tiny(image_size: usize) -> Self {
