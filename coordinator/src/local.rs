@@ -6,10 +6,10 @@ use std::fmt::Write as _;
 use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 
-use trainer_core::data::Split;
-use trainer_core::data::store::DataRoot;
-use trainer_core::scenes::SceneConfig;
-use trainer_core::synthetic::SyntheticDataset;
+use data::Split;
+use data::scenes::SceneConfig;
+use data::store::DataRoot;
+use data::synthetic::SyntheticDataset;
 
 /// Size of a local job.
 #[derive(Debug, Clone)]

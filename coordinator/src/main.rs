@@ -8,7 +8,7 @@ use coordinator::plan::Plan;
 use coordinator::service::CoordinatorService;
 use proto::v1::StatusRequest;
 use proto::v1::coordinator_client::CoordinatorClient;
-use trainer_core::cli::{Flags, init_logging};
+use telemetry::cli::{Flags, init_logging};
 
 const USAGE: &str = "usage:
   xfactor-coordinator run --config CLUSTER.yaml [--dry-run] [--report REPORT.json]
@@ -52,7 +52,7 @@ fn main() -> anyhow::Result<()> {
 async fn run(flags: &Flags) -> anyhow::Result<()> {
     let path = flags.require("config").map_err(anyhow::Error::msg)?;
     let config = ClusterConfig::from_file(Path::new(path))?;
-    let token = config.auth.resolve().map_err(anyhow::Error::msg)?;
+    let token = config.auth.resolve()?;
     let plan = Plan::build(config).await?;
     if flags.has("dry-run") {
         print!("{}", plan.describe());
@@ -120,7 +120,7 @@ async fn status(flags: &Flags) -> anyhow::Result<()> {
     println!(
         "job={} phase={} generation={} workers={} step={}/{} job_steps={}/{} last_loss={} restarts={} last_commit={}",
         status.job_name,
-        status.phase,
+        proto::convert::status_label(&status),
         status.generation,
         status.workers,
         status.step,

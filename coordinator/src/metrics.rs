@@ -2,6 +2,7 @@
 //! membership events. Scraped from `/metrics` (see the `telemetry` crate).
 
 use proto::v1::{JobStatus, StepReport};
+use settings::Phase;
 pub use telemetry::training::{GENERATION, GRAD_NORM, LEARNING_RATE, LOSS, STAGE, STEP};
 use telemetry::{Metric, Registry};
 
@@ -74,11 +75,11 @@ pub fn record_step(registry: &Registry, report: &StepReport, from_rank0: bool) {
 pub fn record_status(
     registry: &Registry,
     status: &JobStatus,
-    stage: u32,
+    phase: Phase,
     samples_per_second: f64,
     mismatches: usize,
 ) {
-    registry.set(&STAGE, &[], f64::from(stage));
+    registry.set(&STAGE, &[], f64::from(phase.number()));
     registry.set(&STEP, &[], status.step as f64);
     registry.set(&STAGE_STEPS, &[], status.total_steps as f64);
     registry.set(&WORKERS, &[], f64::from(status.workers));

@@ -3,14 +3,14 @@
 
 use std::fmt::Write as _;
 
-use trainer_core::XFactorConfig;
-use trainer_core::data::cache::{CacheUse, load_or_index};
-use trainer_core::data::spec::{
-    DataSource, DataSpec, StoredDataset, rank_slice, shard_ids, steps_per_epoch,
-};
-use trainer_core::data::store::DataRoot;
-use trainer_core::data::{DatasetKind, Manifest, Split};
-use trainer_core::trainer::{StageObjective, TrainConfig};
+use data::cache::{CacheError, CacheUse, load_or_index};
+use data::spec::{rank_slice, shard_ids, steps_per_epoch};
+use data::store::{DataRoot, StoreError};
+use data::{DatasetKind, Manifest, Split};
+use settings::Phase;
+use settings::XFactorConfig;
+use settings::data::{DataSource, DataSpec, StoredDataset};
+use settings::train::{StageObjective, TrainConfig};
 
 use crate::config::{ClusterConfig, DataConfig, StageConfig};
 
@@ -18,11 +18,11 @@ use crate::config::{ClusterConfig, DataConfig, StageConfig};
 #[derive(Debug, thiserror::Error)]
 pub enum PlanError {
     /// The model section is invalid.
-    #[error("{0}")]
-    Model(String),
-    /// A dataset could not be indexed.
-    #[error("data.datasets[{index}] ({kind} at {uri}): {reason}")]
-    Dataset {
+    #[error("model")]
+    Model(#[source] settings::model::ConfigError),
+    /// A dataset root could not be opened.
+    #[error("data.datasets[{index}] ({kind} at {uri})")]
+    Open {
         /// Position in the YAML list.
         index: usize,
         /// Its kind.
@@ -30,15 +30,29 @@ pub enum PlanError {
         /// Its root.
         uri: String,
         /// What failed.
-        reason: String,
+        #[source]
+        source: StoreError,
+    },
+    /// A dataset could not be indexed.
+    #[error("data.datasets[{index}] ({kind} at {uri})")]
+    Index {
+        /// Position in the YAML list.
+        index: usize,
+        /// Its kind.
+        kind: &'static str,
+        /// Its root.
+        uri: String,
+        /// What failed.
+        #[source]
+        source: CacheError,
     },
 }
 
 /// One stage, resolved.
 #[derive(Debug, Clone)]
 pub struct StagePlan {
-    /// 1 or 2.
-    pub stage: u32,
+    /// Stage 1 or stage 2.
+    pub phase: Phase,
     /// Optimiser steps.
     pub steps: u64,
     /// Trainer settings sent to workers (threads are the worker's own choice).
@@ -52,14 +66,14 @@ pub struct StagePlan {
 /// Resolves stage `number` of `config` around its `objective`.
 fn stage_plan<O>(
     config: &ClusterConfig,
-    number: u32,
+    phase: Phase,
     stage: &StageConfig<O>,
     objective: StageObjective,
     source: &DataSource,
     image_size: usize,
 ) -> StagePlan {
     StagePlan {
-        stage: number,
+        phase,
         steps: stage.steps,
         train: TrainConfig {
             seed: config.seed,
@@ -72,7 +86,7 @@ fn stage_plan<O>(
         },
         data: DataSpec {
             source: source.clone(),
-            sampler: config.sampler(number),
+            sampler: config.sampler(phase),
             image_size,
             seed: config.seed,
             global_batch: stage.global_batch as usize,
@@ -108,16 +122,23 @@ impl Plan {
             DataConfig::Datasets(datasets) => {
                 let mut stored = Vec::new();
                 for (index, dataset) in datasets.iter().enumerate() {
-                    let failed = |reason: String| PlanError::Dataset {
-                        index,
-                        kind: dataset.kind.name(),
-                        uri: dataset.uri.0.clone(),
-                        reason,
-                    };
-                    let root = DataRoot::open(&dataset.uri.0).map_err(|e| failed(e.to_string()))?;
-                    let (cached, used) = load_or_index(&root, dataset.kind)
-                        .await
-                        .map_err(|e| failed(e.to_string()))?;
+                    let (kind, uri) = (dataset.kind.name(), dataset.uri.0.clone());
+                    let root =
+                        DataRoot::open(&dataset.uri.0).map_err(|source| PlanError::Open {
+                            index,
+                            kind,
+                            uri: uri.clone(),
+                            source,
+                        })?;
+                    let (cached, used) =
+                        load_or_index(&root, dataset.kind).await.map_err(|source| {
+                            PlanError::Index {
+                                index,
+                                kind,
+                                uri,
+                                source,
+                            }
+                        })?;
                     tracing::info!(
                         dataset = dataset.kind.name(),
                         uri = %dataset.uri.0,
@@ -140,7 +161,7 @@ impl Plan {
         let stages = [
             stage_plan(
                 &config,
-                1,
+                Phase::Stage1,
                 &config.stage1,
                 StageObjective::Stage1(config.stage1.objective.clone()),
                 &source,
@@ -148,7 +169,7 @@ impl Plan {
             ),
             stage_plan(
                 &config,
-                2,
+                Phase::Stage2,
                 &config.stage2,
                 StageObjective::Stage2(config.stage2.objective.clone()),
                 &source,
@@ -163,9 +184,9 @@ impl Plan {
         })
     }
 
-    /// The stage numbered `stage` (1 or 2).
-    pub fn stage(&self, stage: u32) -> &StagePlan {
-        &self.stages[if stage <= 1 { 0 } else { 1 }]
+    /// The plan of training stage `phase`; the stage-2 plan for any later phase.
+    pub fn stage(&self, phase: Phase) -> &StagePlan {
+        &self.stages[usize::from(phase != Phase::Stage1)]
     }
 
     /// Human-readable plan for `--dry-run`: ranks, shards of the first epoch, steps.
@@ -194,8 +215,8 @@ impl Plan {
         for stage in &self.stages {
             let _ = writeln!(
                 out,
-                "stage{}: steps={} global_batch={} micro_batch={} lr {}→{}→{} warmup={} lpips_weight={} frames_per_sample={}",
-                stage.stage,
+                "{}: steps={} global_batch={} micro_batch={} lr {}→{}→{} warmup={} lpips_weight={} frames_per_sample={}",
+                stage.phase,
                 stage.steps,
                 stage.train.global_batch,
                 stage.train.micro_batch,

@@ -25,7 +25,7 @@ pub fn line(status: &JobStatus, elapsed: Duration) -> String {
     };
     format!(
         "[{bar}] {done}/{total} {} loss={:.4} workers={} elapsed={} eta={eta}",
-        status.phase,
+        proto::convert::status_label(status),
         status.last_loss,
         status.workers,
         clock(elapsed.as_secs_f64())
@@ -52,7 +52,8 @@ mod tests {
 
     fn status(done: u64, total: u64) -> JobStatus {
         JobStatus {
-            phase: "stage1".into(),
+            phase: proto::v1::Phase::Stage1 as i32,
+            group_running: true,
             last_loss: 0.5,
             workers: 2,
             job_steps_done: done,

@@ -28,14 +28,19 @@ checkpoint: {{uri: {checkpoints}, every: 1}}
     )
 }
 
-fn request(protocol: u32, model: &str) -> RegisterRequest {
+/// A registration; `model` (the model config as JSON) is the one the worker insists on.
+fn request(protocol: u32, model: Option<&serde_json::Value>) -> RegisterRequest {
+    let model = model.map(|json| {
+        let config: settings::XFactorConfig = serde_json::from_value(json.clone()).unwrap();
+        proto::v1::ModelConfig::from(&config)
+    });
     RegisterRequest {
         protocol_version: protocol,
-        model_config_version: trainer_core::XFactorConfig::SCHEMA_VERSION,
+        model_config_version: settings::XFactorConfig::SCHEMA_VERSION,
         worker_name: "test".into(),
         collective_address: "127.0.0.1:1".into(),
-        device: "cpu".into(),
-        expected_model_config_json: model.into(),
+        device: Some(proto::v1::Device::Cpu as i32),
+        expected_model: model,
     }
 }
 
@@ -78,7 +83,7 @@ async fn refusals_name_their_reason() {
         proto::AttachToken::new("guessed").unwrap(),
     );
     let refused = wrong
-        .register(request(proto::PROTOCOL_VERSION, ""))
+        .register(request(proto::PROTOCOL_VERSION, None))
         .await
         .unwrap_err();
     assert_eq!(refused.code(), tonic::Code::Unauthenticated);
@@ -89,7 +94,7 @@ async fn refusals_name_their_reason() {
         proto::AttachToken::new("right-token").unwrap(),
     );
     let protocol = client
-        .register(request(proto::PROTOCOL_VERSION + 1, ""))
+        .register(request(proto::PROTOCOL_VERSION + 1, None))
         .await
         .unwrap_err();
     assert_eq!(protocol.code(), tonic::Code::FailedPrecondition);
@@ -103,7 +108,7 @@ async fn refusals_name_their_reason() {
     let mut other = model.clone();
     other["width"] = serde_json::json!(64);
     let differs = client
-        .register(request(proto::PROTOCOL_VERSION, &other.to_string()))
+        .register(request(proto::PROTOCOL_VERSION, Some(&other)))
         .await
         .unwrap_err();
     assert_eq!(differs.code(), tonic::Code::FailedPrecondition);
@@ -113,7 +118,7 @@ async fn refusals_name_their_reason() {
     );
 
     let accepted = client
-        .register(request(proto::PROTOCOL_VERSION, &model.to_string()))
+        .register(request(proto::PROTOCOL_VERSION, Some(&model)))
         .await
         .unwrap();
     assert!(accepted.into_inner().worker_id > 0);

@@ -3,9 +3,9 @@
 
 use std::path::PathBuf;
 
+use data::decode::DecodeError;
+use data::store::StoreError;
 use trainer_core::checkpoint::CheckpointError;
-use trainer_core::data::decode::DecodeError;
-use trainer_core::data::store::StoreError;
 
 use crate::figures::FigureError;
 use crate::metrics::ImageMetricError;

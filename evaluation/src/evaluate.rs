@@ -6,11 +6,11 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use burn::tensor::{Device, Tensor, TensorData};
+use data::Image;
+use data::scenes::SceneConfig;
+use data::synthetic::SyntheticDataset;
 use serde::{Deserialize, Serialize};
-use trainer_core::augment::Image;
 use trainer_core::lpips::Lpips;
-use trainer_core::scenes::SceneConfig;
-use trainer_core::synthetic::SyntheticDataset;
 use trainer_core::{XFactor, XFactorConfig, checkpoint};
 
 use crate::error::{EvalError, io_error};
@@ -18,95 +18,14 @@ use crate::figures::{save_camera_paths, save_grid};
 use crate::inference::{pose_latents, render_targets, transfer};
 use crate::metrics::{CameraMetrics, psnr, ssim};
 use crate::oracle::{
-    ClassicalOracle, ClassicalSettings, ExternalOracle, GroundTruthOracle, OracleSpec, PoseOracle,
+    ClassicalOracle, ClassicalSettings, ExternalOracle, GroundTruthOracle, PoseOracle,
 };
-use crate::probe::{ProbeReport, ProbeSequence, ProbeSpec, run_probe};
+use crate::probe::{ProbeReport, ProbeSequence, run_probe};
 use crate::tps::{TpsReport, draw_pairs, target_frames, transferability};
+use settings::evaluation::{EvaluationSpec, OracleSpec};
 
 /// Pairs drawn in the render-grid figure.
 const GRID_PAIRS: usize = 3;
-
-/// What to evaluate: small enough to travel as JSON in a job assignment.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(default, deny_unknown_fields)]
-pub struct EvaluationSpec {
-    /// Seed of the generated scenes, trajectories, TPS pairs and probe batches.
-    pub seed: u64,
-    /// Generated scenes (the last `probe.test_scenes` are held out from probe training).
-    pub scenes: u64,
-    /// Camera trajectories, each rendered in every scene.
-    pub trajectories: u64,
-    /// Frames per trajectory.
-    pub frames: usize,
-    /// Transfers scored by TPS.
-    pub tps_pairs: usize,
-    /// Equally spaced target frames per transfer (the paper: 5).
-    pub tps_frames: usize,
-    /// Sequences autoencoded for PSNR / SSIM / LPIPS.
-    pub reconstruction_sequences: usize,
-    /// The pose probe.
-    pub probe: ProbeSpec,
-    /// The pose oracle of TPS.
-    pub oracle: OracleSpec,
-    /// LPIPS weights (safetensors, `tools/convert_lpips_weights.py`); LPIPS is skipped without.
-    pub lpips_weights: Option<PathBuf>,
-    /// Also evaluate an untrained model of the same configuration, as the baseline.
-    pub compare_untrained: bool,
-}
-
-impl EvaluationSpec {
-    /// Checks the limits the evaluation relies on, naming the key, so a cluster YAML is refused
-    /// when it is read rather than after training.
-    pub fn validate(&self) -> Result<(), String> {
-        let checks = [
-            (
-                self.scenes < 2,
-                "scenes",
-                "at least 2 (TPS renders one scene along another's motion)",
-            ),
-            (
-                self.trajectories < 2,
-                "trajectories",
-                "at least 2 (TPS compares against an unrelated one)",
-            ),
-            (self.frames < 2, "frames", "at least 2"),
-            (self.tps_frames < 2, "tps_frames", "at least 2"),
-            (self.tps_pairs == 0, "tps_pairs", "at least 1"),
-            (self.probe.steps == 0, "probe.steps", "at least 1"),
-            (self.probe.batch == 0, "probe.batch", "at least 1"),
-            (self.probe.width == 0, "probe.width", "at least 1"),
-            (
-                self.probe.test_scenes == 0 || self.probe.test_scenes >= self.scenes,
-                "probe.test_scenes",
-                "at least 1 and fewer than `scenes` (the rest train the probe)",
-            ),
-        ];
-        match checks.iter().find(|(bad, _, _)| *bad) {
-            Some((_, key, expected)) => Err(format!("{key}: expected {expected}")),
-            None => Ok(()),
-        }
-    }
-}
-
-impl Default for EvaluationSpec {
-    /// 6 scenes x 8 trajectories x 8 frames, 32 TPS pairs of 5 frames, 8 reconstructed
-    /// sequences, the default probe, the ground-truth oracle, an untrained baseline.
-    fn default() -> Self {
-        Self {
-            seed: 0,
-            scenes: 6,
-            trajectories: 8,
-            frames: 8,
-            tps_pairs: 32,
-            tps_frames: 5,
-            reconstruction_sequences: 8,
-            probe: ProbeSpec::default(),
-            oracle: OracleSpec::GroundTruth,
-            lpips_weights: None,
-            compare_untrained: true,
-        }
-    }
-}
 
 /// Autoencoding quality: targets rendered with poses read from the same video.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]

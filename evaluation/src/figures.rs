@@ -3,10 +3,10 @@
 
 use std::path::{Path, PathBuf};
 
+use data::Image;
+use data::scenes::CameraPose;
 use image::codecs::gif::{GifEncoder, Repeat};
 use image::{Delay, Frame, Rgb, RgbImage, RgbaImage};
-use trainer_core::augment::Image;
-use trainer_core::scenes::CameraPose;
 
 /// Gap between tiles of grids and strips, in pixels.
 const GAP: u32 = 2;

@@ -4,9 +4,9 @@
 
 use std::path::Path;
 
-use trainer_core::augment::Image;
-use trainer_core::data::decode::decode_frame;
-use trainer_core::data::store::DataRoot;
+use data::Image;
+use data::decode::decode_frame;
+use data::store::DataRoot;
 
 use crate::error::{EvalError, io_error};
 

@@ -1,8 +1,8 @@
 //! Conversions between the generated scenes' [`CameraPose`] and nalgebra, and the few rigid-body
 //! operations the metrics, oracles and probe share.
 
+use data::scenes::CameraPose;
 use nalgebra::{Matrix3, Vector3};
-use trainer_core::scenes::CameraPose;
 
 /// The rotation of `pose` as an nalgebra matrix, for linear algebra on poses.
 pub fn rotation(pose: &CameraPose) -> Matrix3<f64> {

@@ -3,8 +3,8 @@
 //! context views (Render).
 
 use burn::tensor::{Device, Tensor, TensorData};
+use data::Image;
 use trainer_core::XFactor;
-use trainer_core::augment::Image;
 use trainer_core::model::PoseLatents;
 
 use crate::error::EvalError;

@@ -18,4 +18,4 @@ pub mod evaluate;
 pub mod probe;
 pub mod tps;
 
-pub use evaluate::{EvaluationReport, EvaluationSpec, run_evaluation};
+pub use evaluate::{EvaluationReport, run_evaluation};

@@ -12,10 +12,11 @@ use burn::nn::{Linear, LinearConfig};
 use burn::optim::{AdamWConfig, GradientsParams};
 use burn::tensor::activation::gelu;
 use burn::tensor::{Device, Tensor, TensorData};
+use data::rng::Stream;
+use data::scenes::CameraPose;
 use nalgebra::{Matrix3, Vector3};
 use serde::{Deserialize, Serialize};
-use trainer_core::rng::Stream;
-use trainer_core::scenes::CameraPose;
+use settings::evaluation::ProbeSpec;
 
 use crate::error::EvalError;
 use crate::geometry::{pose, project_to_rotation, relative_to_reference};
@@ -26,35 +27,6 @@ use crate::metrics::{CameraMetrics, trajectory_errors};
 const PROBE_TAG: u64 = 0x5052_4f42;
 /// Outputs: 9 rotation entries and 3 translation components.
 const OUTPUTS: usize = 12;
-
-/// How the probe is trained.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(default)]
-pub struct ProbeSpec {
-    /// Optimiser steps (the paper: 10k).
-    pub steps: usize,
-    /// Samples per step (the paper: 64).
-    pub batch: usize,
-    /// Hidden width (the paper: 256).
-    pub width: usize,
-    /// AdamW learning rate.
-    pub learning_rate: f64,
-    /// Scenes held out for testing (the last ones).
-    pub test_scenes: u64,
-}
-
-impl Default for ProbeSpec {
-    /// 2000 steps of batch 64 at width 256, learning rate `1e-3`, two held-out scenes.
-    fn default() -> Self {
-        Self {
-            steps: 2000,
-            batch: 64,
-            width: 256,
-            learning_rate: 1e-3,
-            test_scenes: 2,
-        }
-    }
-}
 
 /// The MLP: `Cp -> width -> width -> 12`, GELU between.
 #[derive(Module, Debug)]
@@ -239,7 +211,7 @@ pub fn run_probe(
 #[cfg(test)]
 mod tests {
     use super::*;
-    use trainer_core::scenes::Trajectory;
+    use data::scenes::Trajectory;
 
     /// Latents that encode the true relative pose exactly: the probe must learn to read them.
     fn sequences(range: std::ops::Range<u64>) -> Vec<ProbeSequence> {

@@ -6,10 +6,10 @@
 //! calibrations of the oracle: B's true rendering along A's motion (a perfect transfer) and B
 //! along an unrelated trajectory (a failed one).
 
+use data::Image;
+use data::rng::Stream;
+use data::synthetic::SyntheticDataset;
 use serde::{Deserialize, Serialize};
-use trainer_core::augment::Image;
-use trainer_core::rng::Stream;
-use trainer_core::synthetic::SyntheticDataset;
 
 use crate::error::EvalError;
 use crate::metrics::{CameraMetrics, PairError, trajectory_errors};
@@ -196,7 +196,7 @@ pub fn transferability(
 mod tests {
     use super::*;
     use crate::oracle::GroundTruthOracle;
-    use trainer_core::scenes::SceneConfig;
+    use data::scenes::SceneConfig;
 
     #[test]
     fn ground_truth_tps_is_perfect_for_itself_and_low_for_random_motion() {

@@ -5,8 +5,8 @@
 use std::path::{Path, PathBuf};
 
 use burn::tensor::Device;
+use data::Image;
 use serde::Serialize;
-use trainer_core::augment::Image;
 use trainer_core::checkpoint;
 
 use crate::error::{EvalError, io_error};

@@ -8,9 +8,9 @@
 //! other seeds most sequences stay around 2 degrees but an occasional one converges to a wrong
 //! motion (e.g. one of 8 on seed 12), so these are the numbers of this seed, not a guarantee.
 
+use data::scenes::{Scene, SceneConfig, Trajectory};
 use evaluation::metrics::{CameraMetrics, trajectory_errors};
 use evaluation::oracle::{ClassicalOracle, ClassicalSettings, PoseOracle};
-use trainer_core::scenes::{Scene, SceneConfig, Trajectory};
 
 #[test]
 fn classical_oracle_recovers_generated_trajectories() {

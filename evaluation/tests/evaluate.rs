@@ -15,14 +15,14 @@
 use std::time::Instant;
 
 use burn::tensor::Device;
-use evaluation::oracle::OracleSpec;
-use evaluation::probe::ProbeSpec;
-use evaluation::{EvaluationReport, EvaluationSpec, run_evaluation};
-use trainer_core::objective::Stage1Config;
-use trainer_core::optim::{AdamWConfig, Schedule};
-use trainer_core::scenes::SceneConfig;
-use trainer_core::synthetic::SyntheticDataset;
-use trainer_core::trainer::{StageObjective, TrainConfig, Trainer};
+use data::scenes::SceneConfig;
+use data::synthetic::SyntheticDataset;
+use evaluation::{EvaluationReport, run_evaluation};
+use settings::evaluation::{EvaluationSpec, OracleSpec, ProbeSpec};
+use settings::objective::Stage1Config;
+use settings::optim::{AdamWConfig, Schedule};
+use settings::train::{StageObjective, TrainConfig};
+use trainer_core::trainer::Trainer;
 use trainer_core::{XFactor, XFactorConfig};
 
 const SIDE: usize = 16;

@@ -4,6 +4,7 @@
 //! Nothing else is shared between the coordinator and the workers at run time: a change here is
 //! a change of [`PROTOCOL_VERSION`], which registration compares.
 
+pub mod convert;
 pub mod tls;
 
 /// Generated messages and services of package `xfactor.v1`.
@@ -13,7 +14,7 @@ pub mod v1 {
 }
 
 /// Version of the messages and their meaning. A coordinator refuses workers of another version.
-pub const PROTOCOL_VERSION: u32 = 2;
+pub const PROTOCOL_VERSION: u32 = 3;
 
 /// Largest message either side accepts (a collective chunk is at most a few MiB; assignments
 /// and reports are small). Anything bigger is refused before it is buffered.

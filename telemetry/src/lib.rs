@@ -4,6 +4,7 @@
 //! [`http::serve`], and loss curves written as CSV and drawn to PNG by [`curves`]. It knows
 //! nothing about the model or the job protocol: callers name their series.
 
+pub mod cli;
 pub mod curves;
 pub mod http;
 pub mod metrics;

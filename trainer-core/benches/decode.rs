@@ -5,10 +5,10 @@
 
 use std::time::Instant;
 
+use data::decode::decode_frame;
+use data::scenes::{Scene, SceneConfig, Trajectory};
 use image::RgbImage;
 use image::codecs::jpeg::JpegEncoder;
-use trainer_core::data::decode::decode_frame;
-use trainer_core::scenes::{Scene, SceneConfig, Trajectory};
 
 fn jpeg_frames(width: u32, height: u32, count: usize) -> Vec<Vec<u8>> {
     let side = width.max(height) as usize;

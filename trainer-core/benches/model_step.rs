@@ -8,10 +8,10 @@ use std::time::Instant;
 
 use burn::module::Module;
 use burn::tensor::{Device, Tensor, TensorData};
+use data::rng::Stream;
 use trainer_core::allocator;
 use trainer_core::backend::BackendChoice;
 use trainer_core::model::PoseLatents;
-use trainer_core::rng::Stream;
 use trainer_core::sharded::sharded_gradients;
 use trainer_core::{XFactor, XFactorConfig};
 

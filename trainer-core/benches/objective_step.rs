@@ -9,13 +9,14 @@ use std::path::PathBuf;
 use std::time::Instant;
 
 use burn::tensor::Device;
+use data::scenes::SceneConfig;
+use data::synthetic::SyntheticDataset;
+use settings::objective::{Stage1Config, Stage2Config};
+use settings::optim::{AdamWConfig, Schedule};
+use settings::train::{StageObjective, TrainConfig};
 use trainer_core::allocator;
 use trainer_core::lpips::Lpips;
-use trainer_core::objective::{Stage1Config, Stage2Config};
-use trainer_core::optim::{AdamWConfig, Schedule};
-use trainer_core::scenes::SceneConfig;
-use trainer_core::synthetic::SyntheticDataset;
-use trainer_core::trainer::{StageObjective, TrainConfig, Trainer};
+use trainer_core::trainer::Trainer;
 use trainer_core::{XFactor, XFactorConfig};
 
 fn argument(name: &str, default: usize) -> usize {

@@ -1,18 +1,9 @@
 //! Photometric augmentation of PoseEnc's input: colour jitter and Gaussian blur with
 //! torchvision's semantics, applied with the same parameters to both frames of a pair.
 
-use crate::rng::Stream;
-
-/// A channels-last RGB image with values in `[-1, 1]`.
-#[derive(Debug, Clone, PartialEq)]
-pub struct Image {
-    /// Rows.
-    pub height: usize,
-    /// Columns.
-    pub width: usize,
-    /// `height * width * 3` values, row-major, channels last.
-    pub pixels: Vec<f32>,
-}
+use data::Image;
+use data::rng::Stream;
+use settings::objective::AugmentConfig;
 
 /// The four jitter operations, applied in a random order.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -42,46 +33,6 @@ pub struct ColorJitter {
     pub order: [JitterOp; 4],
 }
 
-/// Ranges and probabilities of the augmentation (defaults: the paper's).
-#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
-#[serde(deny_unknown_fields, default)]
-pub struct AugmentConfig {
-    /// Probability of colour jitter.
-    pub jitter_probability: f64,
-    /// Brightness range half-width.
-    pub brightness: f64,
-    /// Contrast range half-width.
-    pub contrast: f64,
-    /// Saturation range half-width.
-    pub saturation: f64,
-    /// Hue range half-width.
-    pub hue: f64,
-    /// Probability of Gaussian blur.
-    pub blur_probability: f64,
-    /// Smallest blur sigma.
-    pub blur_sigma_min: f64,
-    /// Largest blur sigma.
-    pub blur_sigma_max: f64,
-    /// Blur kernel side (odd).
-    pub blur_kernel: usize,
-}
-
-impl Default for AugmentConfig {
-    fn default() -> Self {
-        Self {
-            jitter_probability: 0.9,
-            brightness: 0.2,
-            contrast: 0.2,
-            saturation: 0.2,
-            hue: 0.05,
-            blur_probability: 0.3,
-            blur_sigma_min: 0.1,
-            blur_sigma_max: 2.0,
-            blur_kernel: 7,
-        }
-    }
-}
-
 /// Parameters drawn for one pair.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Augmentation {
@@ -93,10 +44,15 @@ pub struct Augmentation {
     pub blur_kernel: usize,
 }
 
-impl AugmentConfig {
+/// Draws the augmentation of one sample from its settings.
+pub trait AugmentDraw {
     /// Draws one pair's parameters; always consumes the same number of values from `stream`,
     /// so later draws do not shift with earlier outcomes.
-    pub fn draw(&self, stream: &mut Stream) -> Augmentation {
+    fn draw(&self, stream: &mut Stream) -> Augmentation;
+}
+
+impl AugmentDraw for AugmentConfig {
+    fn draw(&self, stream: &mut Stream) -> Augmentation {
         let apply_jitter = stream.bernoulli(self.jitter_probability);
         let brightness = stream.uniform_in(1.0 - self.brightness, 1.0 + self.brightness) as f32;
         let contrast = stream.uniform_in(1.0 - self.contrast, 1.0 + self.contrast) as f32;

@@ -6,8 +6,8 @@ use std::path::{Path, PathBuf};
 use burn::store::{ModuleSnapshot, SafetensorsStore};
 use burn::tensor::Device;
 
-use crate::config::{ConfigError, XFactorConfig};
 use crate::model::XFactor;
+use settings::model::{ConfigError, XFactorConfig};
 
 /// Why a checkpoint could not be written or read.
 #[derive(Debug, thiserror::Error)]

@@ -1,15 +1,13 @@
-//! `trainer-core`: the XFactor model, its weights and (later) its objectives and trainer.
+//! `trainer-core`: the XFactor model, its weights, LPIPS, both objectives, the optimiser and the
+//! single-process trainer, in burn. Settings come from `settings`, samples from `data`.
 //!
-//! This crate knows nothing about networking: workers and the coordinator drive it through
+//! This crate knows nothing about networking: workers and the evaluation drive it through
 //! plain function calls.
 
 pub mod allocator;
 pub mod augment;
 pub mod backend;
 pub mod checkpoint;
-pub mod cli;
-pub mod config;
-pub mod data;
 pub mod flat;
 pub mod flax;
 pub mod lpips;
@@ -17,11 +15,8 @@ pub mod model;
 pub mod objective;
 pub mod optim;
 pub mod parity;
-pub mod rng;
-pub mod scenes;
 pub mod sharded;
-pub mod synthetic;
 pub mod trainer;
 
-pub use config::XFactorConfig;
 pub use model::XFactor;
+pub use settings::XFactorConfig;

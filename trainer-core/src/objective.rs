@@ -8,39 +8,17 @@
 
 use burn::tensor::{Device, Tensor, TensorData};
 
-use crate::augment::{AugmentConfig, Augmentation, Image};
+use data::Image;
+use settings::objective::{Stage1Config, Stage2Config};
+
+use crate::augment::{AugmentDraw, Augmentation};
 use crate::lpips::Lpips;
 use crate::model::{PoseLatents, XFactor};
-use crate::rng::Stream;
+use data::rng::Stream;
 
 /// Tags that separate each stage's draws from every other use of `(seed, step, sample)`.
 const STAGE1_STREAM: u64 = 0x5354_4147_4531;
 const STAGE2_STREAM: u64 = 0x5354_4147_4532;
-
-/// Stage-1 probabilities (defaults: the paper's) and the augmentation of PoseEnc's input.
-#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
-#[serde(deny_unknown_fields, default)]
-pub struct Stage1Config {
-    /// Probability that the target is replaced by the context (self-decode).
-    pub self_decode_probability: f64,
-    /// Probability that no quadrant is marked (plain autoencoding).
-    pub unmasked_probability: f64,
-    /// Weight of LPIPS in the loss (`0` trains with L1 alone).
-    pub lpips_weight: f64,
-    /// Photometric augmentation of PoseEnc's input.
-    pub augment: AugmentConfig,
-}
-
-impl Default for Stage1Config {
-    fn default() -> Self {
-        Self {
-            self_decode_probability: 0.05,
-            unmasked_probability: 0.05,
-            lpips_weight: 0.5,
-            augment: AugmentConfig::default(),
-        }
-    }
-}
 
 /// The quadrants of the patch grid marked as segment 1: two of the four, or none.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -88,9 +66,25 @@ pub struct Stage1Draw {
     pub augmentation: Augmentation,
 }
 
-impl Stage1Config {
+/// The draws and batches of stage 1, computed from its settings.
+pub trait Stage1Objective {
     /// The draws of global sample `sample` at `step`.
-    pub fn draw(&self, seed: u64, step: u64, sample: u64) -> Stage1Draw {
+    fn draw(&self, seed: u64, step: u64, sample: u64) -> Stage1Draw;
+    /// Assembles one (micro-)batch from `(context, target)` frame pairs whose first element is
+    /// global sample `first_sample` of `step`.
+    fn batch(
+        &self,
+        pairs: &[(Image, Image)],
+        seed: u64,
+        step: u64,
+        first_sample: u64,
+        patch_size: usize,
+        device: &Device,
+    ) -> ObjectiveBatch;
+}
+
+impl Stage1Objective for Stage1Config {
+    fn draw(&self, seed: u64, step: u64, sample: u64) -> Stage1Draw {
         let mut stream = Stream::new(&[seed, STAGE1_STREAM, step, sample]);
         let self_decode = stream.bernoulli(self.self_decode_probability);
         let unmasked = stream.bernoulli(self.unmasked_probability);
@@ -105,9 +99,7 @@ impl Stage1Config {
         }
     }
 
-    /// Assembles one (micro-)batch from `(context, target)` frame pairs whose first element is
-    /// global sample `first_sample` of `step`.
-    pub fn batch(
+    fn batch(
         &self,
         pairs: &[(Image, Image)],
         seed: u64,
@@ -275,34 +267,6 @@ pub fn objective_loss(
     ObjectiveLoss { l1, lpips, total }
 }
 
-/// Stage-2 settings (defaults: the paper's).
-#[derive(Debug, Clone, PartialEq, serde::Serialize, serde::Deserialize)]
-#[serde(deny_unknown_fields, default)]
-pub struct Stage2Config {
-    /// Frames per sample: context views plus the target.
-    pub views: usize,
-    /// Probability that the target is replaced by a random context frame.
-    pub self_decode_probability: f64,
-    /// Probability that no quadrant is marked.
-    pub unmasked_probability: f64,
-    /// Weight of LPIPS in the loss.
-    pub lpips_weight: f64,
-    /// Photometric augmentation of PoseEnc's input.
-    pub augment: AugmentConfig,
-}
-
-impl Default for Stage2Config {
-    fn default() -> Self {
-        Self {
-            views: 6,
-            self_decode_probability: 0.02,
-            unmasked_probability: 0.05,
-            lpips_weight: 0.5,
-            augment: AugmentConfig::default(),
-        }
-    }
-}
-
 /// Everything drawn for one stage-2 sample.
 #[derive(Debug, Clone, PartialEq)]
 pub struct Stage2Draw {
@@ -317,10 +281,26 @@ pub struct Stage2Draw {
     pub augmentation: Augmentation,
 }
 
-impl Stage2Config {
+/// The draws and batches of stage 2, computed from its settings.
+pub trait Stage2Objective {
     /// The draws of global sample `sample` at `step`, for frames with these indices into their
     /// video (any order).
-    pub fn draw(&self, seed: u64, step: u64, sample: u64, frame_indices: &[u64]) -> Stage2Draw {
+    fn draw(&self, seed: u64, step: u64, sample: u64, frame_indices: &[u64]) -> Stage2Draw;
+    /// Assembles one (micro-)batch from samples of `views` frames, each `(frame index in its
+    /// video, image)`, the first sample being global sample `first_sample` of `step`.
+    fn batch(
+        &self,
+        samples: &[Vec<(u64, Image)>],
+        seed: u64,
+        step: u64,
+        first_sample: u64,
+        patch_size: usize,
+        device: &Device,
+    ) -> ObjectiveBatch;
+}
+
+impl Stage2Objective for Stage2Config {
+    fn draw(&self, seed: u64, step: u64, sample: u64, frame_indices: &[u64]) -> Stage2Draw {
         let mut stream = Stream::new(&[seed, STAGE2_STREAM, step, sample]);
         let mut sorted: Vec<usize> = (0..frame_indices.len()).collect();
         sorted.sort_by_key(|&i| frame_indices[i]);
@@ -347,9 +327,7 @@ impl Stage2Config {
         }
     }
 
-    /// Assembles one (micro-)batch from samples of `views` frames, each `(frame index in its
-    /// video, image)`, the first sample being global sample `first_sample` of `step`.
-    pub fn batch(
+    fn batch(
         &self,
         samples: &[Vec<(u64, Image)>],
         seed: u64,

@@ -10,84 +10,10 @@ use std::collections::HashMap;
 use burn::module::{Module, ModuleMapper, ModuleVisitor, Param, ParamId};
 use burn::optim::GradientsParams;
 use burn::tensor::Tensor;
-use serde::{Deserialize, Serialize};
+
+use settings::optim::AdamWConfig;
 
 use crate::flax::{FlaxError, FlaxTensors, HostTensor, flax_name};
-
-/// Linear warm-up then cosine decay, as `optax.warmup_cosine_decay_schedule`.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct Schedule {
-    /// Learning rate at step 0.
-    pub initial_lr: f64,
-    /// Learning rate at the end of warm-up.
-    pub peak_lr: f64,
-    /// Learning rate from `total_steps` on.
-    pub final_lr: f64,
-    /// Steps of linear warm-up.
-    pub warmup_steps: u64,
-    /// Step at which the cosine reaches `final_lr` (warm-up included).
-    pub total_steps: u64,
-}
-
-impl Default for Schedule {
-    /// The paper's: `1e-12 -> 4e-4` over 4000 steps, cosine to `1e-4` at step 100000.
-    fn default() -> Self {
-        Self {
-            initial_lr: 1e-12,
-            peak_lr: 4e-4,
-            final_lr: 1e-4,
-            warmup_steps: 4000,
-            total_steps: 100_000,
-        }
-    }
-}
-
-impl Schedule {
-    /// The learning rate used for the update of `step` (counted from 0).
-    pub fn learning_rate(&self, step: u64) -> f64 {
-        if step < self.warmup_steps {
-            let progress = step as f64 / self.warmup_steps as f64;
-            return self.initial_lr + (self.peak_lr - self.initial_lr) * progress;
-        }
-        let decay_steps = self.total_steps.saturating_sub(self.warmup_steps).max(1);
-        let progress = ((step - self.warmup_steps) as f64 / decay_steps as f64).min(1.0);
-        let cosine = 0.5 * (1.0 + (std::f64::consts::PI * progress).cos());
-        self.final_lr + (self.peak_lr - self.final_lr) * cosine
-    }
-}
-
-/// AdamW hyper-parameters (defaults: the paper's).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct AdamWConfig {
-    /// First-moment decay.
-    pub beta1: f64,
-    /// Second-moment decay.
-    pub beta2: f64,
-    /// Added to the root of the second moment.
-    pub epsilon: f64,
-    /// Decoupled weight decay, multiplied by the learning rate.
-    pub weight_decay: f64,
-    /// Clip gradients to this global norm (over all parameters together).
-    pub clip_norm: Option<f64>,
-    /// Skip the whole update when the pre-clip global norm exceeds this or is NaN (E-RayZer
-    /// uses 5.0).
-    pub skip_norm_above: Option<f64>,
-}
-
-impl Default for AdamWConfig {
-    fn default() -> Self {
-        Self {
-            beta1: 0.9,
-            beta2: 0.95,
-            epsilon: 1e-8,
-            weight_decay: 5e-3,
-            clip_norm: Some(1.0),
-            skip_norm_above: None,
-        }
-    }
-}
 
 /// Whether the parameter with this flax name is weight-decayed: every parameter except
 /// LayerNorm, RMSNorm and LayerScale parameters, biases and `global_embed`.
@@ -358,18 +284,6 @@ mod tests {
     use crate::model::{Dense, LayerNorm, ParamInit};
     use crate::{XFactor, XFactorConfig};
     use burn::tensor::{Device, TensorData};
-
-    #[test]
-    fn schedule_matches_the_paper_at_its_landmarks() {
-        let schedule = Schedule::default();
-        let close = |a: f64, b: f64| (a - b).abs() <= 1e-12 * b.abs().max(1e-12);
-        assert!(close(schedule.learning_rate(0), 1e-12));
-        assert!(close(schedule.learning_rate(2000), 2e-4 + 0.5e-12));
-        assert!(close(schedule.learning_rate(4000), 4e-4));
-        assert!(close(schedule.learning_rate(52_000), 2.5e-4));
-        assert!(close(schedule.learning_rate(100_000), 1e-4));
-        assert!(close(schedule.learning_rate(150_000), 1e-4));
-    }
 
     #[test]
     fn decay_skips_norms_layerscale_biases_and_global_embed() {

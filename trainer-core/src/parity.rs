@@ -10,11 +10,11 @@ use std::path::{Path, PathBuf};
 use burn::tensor::{Device, Tensor};
 use serde::Deserialize;
 
-use crate::config::{ConfigError, XFactorConfig};
 use crate::flax::{
     FlaxError, FlaxTensors, GRADS_PREFIX, HostTensor, PARAMS_PREFIX, load_flax, named_gradients,
 };
 use crate::model::{PoseLatents, XFactor};
+use settings::model::{ConfigError, XFactorConfig};
 
 /// Largest absolute error allowed on any output.
 pub const OUTPUT_TOLERANCE: f32 = 1e-4;

@@ -104,9 +104,9 @@ where
 mod tests {
     use super::*;
     use crate::model::PoseLatents;
-    use crate::rng::Stream;
     use crate::{XFactor, XFactorConfig};
     use burn::tensor::{Device, TensorData};
+    use data::rng::Stream;
 
     #[test]
     fn two_shards_give_the_gradients_of_one_batch() {

@@ -12,70 +12,17 @@ use burn::optim::GradientsParams;
 use burn::tensor::Device;
 use serde::{Deserialize, Serialize};
 
-use crate::augment::Image;
+use data::{BatchSource, Samples};
+use settings::XFactorConfig;
+use settings::train::{StageObjective, TrainConfig};
+
 use crate::checkpoint::{self, CheckpointError};
-use crate::config::XFactorConfig;
 use crate::flax::{FlaxError, FlaxTensors};
 use crate::lpips::Lpips;
 use crate::model::XFactor;
-use crate::objective::{ObjectiveBatch, Stage1Config, Stage2Config, objective_loss};
-use crate::optim::{AdamW, AdamWConfig, Schedule};
+use crate::objective::{ObjectiveBatch, Stage1Objective, Stage2Objective, objective_loss};
+use crate::optim::AdamW;
 use crate::sharded::{add_gradients, sharded_gradients};
-
-/// The samples of one (micro-)batch, in the form its stage needs.
-#[derive(Debug, Clone)]
-pub enum Samples {
-    /// Stage 1: `(context, target)` frames.
-    Pairs(Vec<(Image, Image)>),
-    /// Stage 2: frames with their index in the video.
-    Views(Vec<Vec<(u64, Image)>>),
-}
-
-/// Where training samples come from. Implementations must return the same samples for the same
-/// `(step, first_sample, count)`, whichever process asks: that is what makes runs reproduce.
-pub trait BatchSource: Sync {
-    /// Global samples `first_sample .. first_sample + count` of `step`.
-    fn samples(&self, step: u64, first_sample: u64, count: usize) -> Result<Samples, String>;
-}
-
-/// Which objective a run optimises.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum StageObjective {
-    /// Stereo-monocular transferability.
-    Stage1(Stage1Config),
-    /// Multi-view fine-tune.
-    Stage2(Stage2Config),
-}
-
-impl StageObjective {
-    /// Weight of LPIPS in the loss.
-    pub fn lpips_weight(&self) -> f64 {
-        match self {
-            Self::Stage1(config) => config.lpips_weight,
-            Self::Stage2(config) => config.lpips_weight,
-        }
-    }
-}
-
-/// Everything a single-process run needs besides the model configuration.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct TrainConfig {
-    /// Root of every random draw.
-    pub seed: u64,
-    /// The objective.
-    pub objective: StageObjective,
-    /// Samples per optimiser update.
-    pub global_batch: usize,
-    /// Samples per forward/backward pass; the global batch is accumulated from these.
-    pub micro_batch: usize,
-    /// Threads that split each micro-batch (one per core is fastest on the CPU backend).
-    pub shards: usize,
-    /// Learning-rate schedule.
-    pub schedule: Schedule,
-    /// Optimiser settings.
-    pub optimizer: AdamWConfig,
-}
 
 /// Why training could not start or continue.
 #[derive(Debug, thiserror::Error)]

@@ -2,13 +2,14 @@
 //! camera correctly in another (better than the mean-image baseline). Prints the curve.
 
 use burn::tensor::{Device, Tensor, TensorData};
-use trainer_core::augment::Image;
+use data::Image;
+use data::scenes::SceneConfig;
+use data::synthetic::SyntheticDataset;
+use settings::objective::Stage1Config;
+use settings::optim::{AdamWConfig, Schedule};
+use settings::train::{StageObjective, TrainConfig};
 use trainer_core::model::PoseLatents;
-use trainer_core::objective::Stage1Config;
-use trainer_core::optim::{AdamWConfig, Schedule};
-use trainer_core::scenes::SceneConfig;
-use trainer_core::synthetic::SyntheticDataset;
-use trainer_core::trainer::{StageObjective, TrainConfig, Trainer};
+use trainer_core::trainer::Trainer;
 use trainer_core::{XFactor, XFactorConfig};
 
 const SIDE: usize = 32;

@@ -7,12 +7,14 @@ mod common;
 use burn::module::Module;
 use burn::tensor::Device;
 use burn::tensor::Tensor;
-use trainer_core::augment::Image;
+use data::Image;
+use data::rng::Stream;
+use settings::objective::{Stage1Config, Stage2Config};
+use settings::optim::{AdamWConfig, Schedule};
 use trainer_core::lpips::Lpips;
 use trainer_core::model::PoseLatents;
-use trainer_core::objective::{Stage1Config, Stage2Config, objective_loss, swap_slots};
-use trainer_core::optim::{AdamW, AdamWConfig, Schedule};
-use trainer_core::rng::Stream;
+use trainer_core::objective::{Stage1Objective, Stage2Objective, objective_loss, swap_slots};
+use trainer_core::optim::AdamW;
 use trainer_core::sharded::sharded_gradients;
 use trainer_core::{XFactor, XFactorConfig};
 

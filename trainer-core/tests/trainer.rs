@@ -5,13 +5,13 @@ mod common;
 use burn::module::{Module, ModuleVisitor, Param};
 use burn::optim::GradientsParams;
 use burn::tensor::{Device, Tensor};
-use trainer_core::augment::Image;
-use trainer_core::objective::{Stage1Config, Stage2Config};
-use trainer_core::optim::{AdamWConfig, Schedule};
-use trainer_core::rng::Stream;
-use trainer_core::trainer::{
-    BatchSource, Samples, StageObjective, TrainConfig, TrainError, Trainer,
-};
+use data::Image;
+use data::rng::Stream;
+use data::{BatchSource, Samples};
+use settings::objective::{Stage1Config, Stage2Config};
+use settings::optim::{AdamWConfig, Schedule};
+use settings::train::{StageObjective, TrainConfig};
+use trainer_core::trainer::{TrainError, Trainer};
 use trainer_core::{XFactor, XFactorConfig};
 
 const SIDE: usize = 16;

@@ -6,10 +6,10 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 
 use burn::tensor::{Device, Tensor, TensorData};
+use data::rng::Stream;
 use safetensors::SafeTensors;
 use safetensors::tensor::TensorView;
 use trainer_core::flax::{FlaxTensors, PARAMS_PREFIX, load_flax};
-use trainer_core::rng::Stream;
 use trainer_core::{XFactor, XFactorConfig, checkpoint};
 
 /// Two Render layers, unlike PoseEnc's one, so mismatched layer counts are exercised.

@@ -4,8 +4,8 @@
 use std::time::Duration;
 
 use anyhow::Context;
+use telemetry::cli::Flags;
 use tokio::sync::watch;
-use trainer_core::cli::Flags;
 
 use crate::collective::{CollectiveService, Link, Ring, spawn_server};
 

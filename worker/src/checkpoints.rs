@@ -1,33 +1,21 @@
-//! Moving checkpoint directories to and from the object store. A checkpoint is complete only
-//! once its `COMMIT.json` (file names and sizes) exists, and that file is written last.
+//! Moving checkpoint directories to and from the object store, and committing them. A
+//! checkpoint is complete only once its `COMMIT.json` (file names and sizes) exists, and that
+//! file is written last; the coordinator verifies it before accepting the commit.
 
 use std::path::Path;
 
-use serde::{Deserialize, Serialize};
-use trainer_core::data::store::DataRoot;
+use anyhow::{anyhow, bail};
+use data::store::DataRoot;
+use proto::convert::phase_to_wire;
+use proto::v1::CheckpointCommit;
+use settings::Phase;
+use settings::commit::{CommitFile, CommitManifest, MANIFEST_NAME};
+use tokio::runtime::Runtime;
 
-/// The manifest written last into a checkpoint.
-#[derive(Debug, Clone, Serialize, Deserialize)]
-pub struct CommitManifest {
-    /// Stage.
-    pub stage: u32,
-    /// Steps done.
-    pub step: u64,
-    /// Every file with its size.
-    pub files: Vec<CommitFile>,
-}
-
-/// One file of a checkpoint.
-#[derive(Debug, Clone, Serialize, Deserialize)]
-pub struct CommitFile {
-    /// Name within the checkpoint.
-    pub name: String,
-    /// Size in bytes.
-    pub bytes: u64,
-}
+use crate::session::{Client, Progress};
 
 /// Uploads every file of `dir` under `location`, then `COMMIT.json`.
-pub async fn upload(dir: &Path, location: &str, stage: u32, step: u64) -> anyhow::Result<()> {
+pub async fn upload(dir: &Path, location: &str, phase: Phase, step: u64) -> anyhow::Result<()> {
     let root = DataRoot::create(location)?;
     let mut files = Vec::new();
     let mut entries: Vec<_> = std::fs::read_dir(dir)?.collect::<Result<_, _>>()?;
@@ -41,8 +29,8 @@ pub async fn upload(dir: &Path, location: &str, stage: u32, step: u64) -> anyhow
         });
         root.write(&name, bytes).await?;
     }
-    let manifest = CommitManifest { stage, step, files };
-    root.write("COMMIT.json", serde_json::to_vec_pretty(&manifest)?)
+    let manifest = CommitManifest { phase, step, files };
+    root.write(MANIFEST_NAME, serde_json::to_vec_pretty(&manifest)?)
         .await?;
     Ok(())
 }
@@ -51,14 +39,14 @@ pub async fn upload(dir: &Path, location: &str, stage: u32, step: u64) -> anyhow
 /// `COMMIT.json` or a file's size differs from it.
 pub async fn download(location: &str, dir: &Path) -> anyhow::Result<CommitManifest> {
     let root = DataRoot::open(location)?;
-    let manifest: CommitManifest = serde_json::from_slice(&root.read("COMMIT.json").await?)
-        .map_err(|e| anyhow::anyhow!("{location}/COMMIT.json: {e}"))?;
+    let manifest: CommitManifest = serde_json::from_slice(&root.read(MANIFEST_NAME).await?)
+        .map_err(|e| anyhow!("{location}/{MANIFEST_NAME}: {e}"))?;
     std::fs::create_dir_all(dir)?;
     for file in &manifest.files {
         let bytes = root.read(&file.name).await?;
         anyhow::ensure!(
             bytes.len() as u64 == file.bytes,
-            "{location}/{}: {} bytes, COMMIT.json says {}",
+            "{location}/{}: {} bytes, {MANIFEST_NAME} says {}",
             file.name,
             bytes.len(),
             file.bytes
@@ -66,4 +54,45 @@ pub async fn download(location: &str, dir: &Path) -> anyhow::Result<CommitManife
         std::fs::write(dir.join(&file.name), bytes)?;
     }
     Ok(manifest)
+}
+
+/// What one commit uploads and where.
+pub struct CommitRequest<'a> {
+    /// The files to upload.
+    pub dir: &'a Path,
+    /// The URI prefix they go under.
+    pub location: String,
+    /// The phase that wrote them.
+    pub phase: Phase,
+    /// Steps done.
+    pub step: u64,
+    /// The generation committing.
+    pub generation: u64,
+}
+
+/// Uploads `request.dir` with its manifest last, then asks the coordinator to commit it; fails
+/// when either the upload or the commit fails or the coordinator refuses it.
+pub fn commit(
+    runtime: &Runtime,
+    client: &mut Client,
+    progress: &Progress,
+    request: CommitRequest<'_>,
+) -> anyhow::Result<()> {
+    let location = request.location;
+    runtime.block_on(upload(request.dir, &location, request.phase, request.step))?;
+    let ack = runtime
+        .block_on(client.commit_checkpoint(CheckpointCommit {
+            worker_id: progress.worker_id(),
+            generation: request.generation,
+            phase: phase_to_wire(request.phase) as i32,
+            step: request.step,
+            location: location.clone(),
+        }))
+        .map_err(|s| anyhow!("commit of {location} failed: {}", s.message()))?
+        .into_inner();
+    if !ack.accepted {
+        bail!("commit of {location} refused: {}", ack.reason);
+    }
+    tracing::info!(%location, "committed");
+    Ok(())
 }

@@ -4,7 +4,7 @@
 use std::time::Duration;
 
 use anyhow::{Context, bail};
-use trainer_core::cli::{Flags, init_logging};
+use telemetry::cli::{Flags, init_logging};
 use worker::daemon::{WorkerOptions, WorkerTls, run};
 
 const USAGE: &str = "usage:
@@ -108,7 +108,12 @@ fn main() -> anyhow::Result<()> {
         .unwrap_or(120.0);
     let expected_model_config = flags
         .get("model-config")
-        .map(|path| std::fs::read_to_string(path).with_context(|| format!("--model-config {path}")))
+        .map(|path| {
+            let text =
+                std::fs::read_to_string(path).with_context(|| format!("--model-config {path}"))?;
+            serde_json::from_str::<settings::XFactorConfig>(&text)
+                .with_context(|| format!("--model-config {path} is not a model config"))
+        })
         .transpose()?;
     let scratch = match flags.get("scratch") {
         Some(dir) => dir.into(),
@@ -122,7 +127,10 @@ fn main() -> anyhow::Result<()> {
         token,
         listen: flags.get("listen").unwrap_or("127.0.0.1:0").to_string(),
         advertise: flags.get("advertise").map(str::to_string),
-        device: flags.get("device").map(str::to_string),
+        device: flags
+            .get("device")
+            .map(str::parse::<settings::DeviceChoice>)
+            .transpose()?,
         threads,
         name: flags
             .get("name")

@@ -13,7 +13,7 @@ use coordinator::local::{LocalJob, free_port};
 use coordinator::progress;
 use proto::v1::StatusRequest;
 use proto::v1::coordinator_client::CoordinatorClient;
-use trainer_core::cli::{Flags, init_logging};
+use telemetry::cli::{Flags, init_logging};
 
 const USAGE: &str =
     "usage: xfactor-local [--dir DIR] [--workers N] [--stage1-steps N] [--stage2-steps N]

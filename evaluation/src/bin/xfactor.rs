@@ -7,10 +7,10 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{Context, bail};
 use evaluation::evaluate::read_spec;
-use evaluation::oracle::OracleSpec;
 use evaluation::{TransferRequest, run_evaluation, run_transfer};
+use settings::evaluation::OracleSpec;
+use telemetry::cli::{Flags, init_logging};
 use trainer_core::backend::BackendChoice;
-use trainer_core::cli::{Flags, init_logging};
 
 const USAGE: &str = "usage:
   xfactor transfer --checkpoint MODEL.safetensors --trajectory DIR|URI --scene IMAGE|DIR|URI --out DIR

@@ -3,8 +3,8 @@
 //! error (angle of `R_ref^T R_eval`) and the sign-free translation-direction error, then
 //! `Rac_t` / `Tac_t` accuracies and AUC@t from a 1-degree histogram of the larger error.
 
+use data::scenes::CameraPose;
 use serde::{Deserialize, Serialize};
-use trainer_core::scenes::CameraPose;
 
 use crate::geometry::{rotation, rotation_angle_degrees, translation};
 

@@ -2,7 +2,7 @@
 //! (data range 1): PSNR and SSIM with the standard Gaussian window (Wang et al. 2004: 11x11,
 //! sigma 1.5, `K1 = 0.01`, `K2 = 0.03`, valid positions only, channels averaged).
 
-use trainer_core::augment::Image;
+use data::Image;
 
 /// Side of the SSIM window.
 const SSIM_WINDOW: usize = 11;

@@ -6,9 +6,9 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::sync::atomic::{AtomicU64, Ordering};
 
+use data::Image;
+use data::scenes::CameraPose;
 use serde::Deserialize;
-use trainer_core::augment::Image;
-use trainer_core::scenes::CameraPose;
 
 use super::{OracleError, PoseOracle};
 use crate::figures::save_png;

@@ -6,9 +6,9 @@
 //! real view it looks most like, which is what "ground truth" can mean for an image no
 //! renderer of the scene produced.
 
-use trainer_core::augment::Image;
-use trainer_core::scenes::CameraPose;
-use trainer_core::synthetic::SyntheticDataset;
+use data::Image;
+use data::scenes::CameraPose;
+use data::synthetic::SyntheticDataset;
 
 use super::{OracleError, PoseOracle};
 
@@ -112,7 +112,7 @@ impl PoseOracle for GroundTruthOracle {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use trainer_core::scenes::SceneConfig;
+    use data::scenes::SceneConfig;
 
     #[test]
     fn generated_frames_get_their_exact_poses() {

@@ -10,9 +10,8 @@ pub use classical::{ClassicalOracle, ClassicalSettings};
 pub use external::ExternalOracle;
 pub use ground_truth::GroundTruthOracle;
 
-use serde::{Deserialize, Serialize};
-use trainer_core::augment::Image;
-use trainer_core::scenes::CameraPose;
+use data::Image;
+use data::scenes::CameraPose;
 
 /// Why an oracle could not estimate the poses of a sequence.
 #[derive(Debug, thiserror::Error)]
@@ -42,23 +41,4 @@ pub trait PoseOracle: Sync {
     fn name(&self) -> &'static str;
     /// The camera pose of each of `frames`, in order.
     fn estimate(&self, frames: &[Image]) -> Result<Vec<CameraPose>, OracleError>;
-}
-
-/// Which oracle an evaluation uses, in serialisable form so it can travel in a job spec.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
-#[serde(rename_all = "snake_case", tag = "kind")]
-pub enum OracleSpec {
-    /// Render-and-compare against the generated frames of known pose.
-    #[default]
-    GroundTruth,
-    /// Feature matching and essential matrices at the generated scenes' field of view.
-    Classical,
-    /// Any program that reads frame paths and prints poses as JSON.
-    External {
-        /// Program to run.
-        program: String,
-        /// Arguments placed before the frame paths.
-        #[serde(default)]
-        args: Vec<String>,
-    },
 }

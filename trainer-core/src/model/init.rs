@@ -3,7 +3,7 @@
 use burn::module::Param;
 use burn::tensor::{Device, Tensor, TensorData};
 
-use crate::rng::Stream;
+use data::rng::Stream;
 
 /// Hands out freshly initialised parameters, each drawn from its own stream keyed by
 /// `(seed, parameter index)`, so a model built twice from one seed is bitwise identical on any

@@ -19,7 +19,7 @@ pub use rope::RopeTable;
 use burn::module::Module;
 use burn::tensor::{Device, Tensor};
 
-use crate::config::{ConfigError, XFactorConfig};
+use settings::model::{ConfigError, XFactorConfig};
 
 /// Both networks, trained jointly and saved as one.
 #[derive(Module, Debug)]

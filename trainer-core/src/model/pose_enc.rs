@@ -8,7 +8,7 @@ use super::layers::{Dense, LayerNorm, Mlp3, gelu_tanh};
 use super::multiview::{MultiViewLayer, SegmentMasks};
 use super::patch::patchify;
 use super::rope::RopeTable;
-use crate::config::XFactorConfig;
+use settings::XFactorConfig;
 
 /// Standard deviation of the initial `global_embed`.
 const GLOBAL_EMBED_STD: f64 = 0.02;

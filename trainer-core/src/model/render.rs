@@ -9,7 +9,7 @@ use super::layers::{LayerNorm, Mlp2, Mlp3, gelu_tanh};
 use super::multiview::{MultiViewLayer, SegmentMasks};
 use super::patch::{patchify, unpatchify};
 use super::rope::RopeTable;
-use crate::config::XFactorConfig;
+use settings::XFactorConfig;
 
 /// Pose latents handed to Render, one per view with the target's last.
 #[derive(Debug, Clone)]

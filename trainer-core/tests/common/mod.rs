@@ -14,8 +14,8 @@ pub fn shared_fixture(name: &str) -> PathBuf {
 /// A `side x side` view of a smooth sinusoidal pattern shifted sideways by `offset` pixels: the
 /// frames of a camera sliding past a textured wall, for tests that need real motion cheaply.
 #[allow(dead_code)] // each test binary compiles this module; not all of them need the helper
-pub fn sliding_frame(phases: &[f64], offset: f64, side: usize) -> trainer_core::augment::Image {
-    trainer_core::augment::Image {
+pub fn sliding_frame(phases: &[f64], offset: f64, side: usize) -> data::Image {
+    data::Image {
         height: side,
         width: side,
         pixels: (0..side * side * 3)

@@ -214,7 +214,7 @@ fn skew(v: &Vector3<f64>) -> Matrix3<f64> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use trainer_core::rng::Stream;
+    use data::rng::Stream;
 
     #[test]
     fn recovers_motions_and_depths_from_a_perturbed_start() {

@@ -4,8 +4,8 @@
 //!
 //! Convention: `x2^T E x1 = 0` with `X2 = R X1 + t`, i.e. `(R, t)` maps camera 1 to camera 2.
 
+use data::rng::Stream;
 use nalgebra::{Matrix3, SMatrix, Vector2, Vector3};
-use trainer_core::rng::Stream;
 
 /// Minimal sample of the 8-point algorithm.
 const SAMPLE: usize = 8;

@@ -1,7 +1,7 @@
 //! Sparse features for two-view geometry: Harris corners with sub-pixel refinement,
 //! zero-mean unit-norm patch descriptors, and mutual-nearest matching with a ratio test.
 
-use trainer_core::augment::Image;
+use data::Image;
 
 /// Harris' trace weight `k`.
 const HARRIS_K: f64 = 0.04;

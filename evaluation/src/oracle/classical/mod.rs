@@ -18,10 +18,10 @@ mod bundle;
 mod essential;
 mod features;
 
+use data::Image;
+use data::scenes::CameraPose;
 use nalgebra::{Matrix3, Vector2, Vector3};
 use serde::{Deserialize, Serialize};
-use trainer_core::augment::Image;
-use trainer_core::scenes::CameraPose;
 
 use self::bundle::{Bundle, Free, Observation};
 use self::essential::{Ransac, RelativePose, relative_pose};

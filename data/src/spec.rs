@@ -8,60 +8,16 @@
 
 use std::sync::{Arc, Mutex};
 
-use serde::{Deserialize, Serialize};
+use settings::data::{DataSource, DataSpec, DatasetKind, StoredDataset};
 
-use super::cache::{CacheError, ListingFingerprint, read_cached};
-use super::manifest::{DatasetKind, Manifest, Split};
-use super::sampler::SamplerConfig;
-use super::shard::shard_sequences;
-use super::source::{DatasetSource, IndexedDataset};
-use super::store::{DataRoot, StoreError};
+use crate::batch::{BatchSource, Samples};
+use crate::cache::{CacheError, read_cached};
+use crate::manifest::{Manifest, Split};
 use crate::scenes::SceneConfig;
+use crate::shard::shard_sequences;
+use crate::source::{DatasetSource, IndexedDataset};
+use crate::store::{DataRoot, StoreError};
 use crate::synthetic::SyntheticDataset;
-use crate::trainer::{BatchSource, Samples};
-
-/// One stored dataset, pinned to the listing its manifest cache was built from.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct StoredDataset {
-    /// Which layout.
-    pub kind: DatasetKind,
-    /// Root URI.
-    pub uri: String,
-    /// Fingerprint of the listing the coordinator indexed.
-    pub fingerprint: ListingFingerprint,
-}
-
-/// Where a stage's samples come from.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(rename_all = "snake_case")]
-pub enum DataSource {
-    /// Procedural scenes rendered in memory by every rank.
-    Generated {
-        /// Scenes.
-        scenes: u64,
-        /// Camera paths, each rendered in every scene.
-        trajectories: u64,
-        /// Frames per path.
-        frames: usize,
-    },
-    /// Datasets on an object store.
-    Stored(Vec<StoredDataset>),
-}
-
-/// Everything a rank needs to read a stage's samples.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct DataSpec {
-    /// The samples' origin.
-    pub source: DataSource,
-    /// Window sampling and mixture of the stage.
-    pub sampler: SamplerConfig,
-    /// Training resolution.
-    pub image_size: usize,
-    /// Root of sampling and sharding draws.
-    pub seed: u64,
-    /// Samples per optimiser step over all ranks (an epoch is about one sample per sequence).
-    pub global_batch: usize,
-}
 
 /// Why a rank could not open its data.
 #[derive(Debug, thiserror::Error)]
@@ -75,9 +31,6 @@ pub enum SpecError {
     /// No training sequences.
     #[error("the job's datasets hold no training sequences")]
     NoTrainingSequences,
-    /// The loader's runtime could not start.
-    #[error("data loader: {0}")]
-    Runtime(String),
 }
 
 /// Train-split sequences of every stored dataset, read from the manifest caches.

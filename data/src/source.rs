@@ -7,13 +7,15 @@ use std::sync::atomic::{AtomicU64, Ordering};
 
 use futures::future::try_join_all;
 
-use super::decode::decode_frame;
-use super::manifest::{DatasetKind, Manifest, Split};
-use super::sampler::SamplerConfig;
-use super::store::DataRoot;
-use crate::augment::Image;
+use crate::decode::decode_frame;
+use settings::data::{DatasetKind, SamplerConfig};
+
+use crate::batch::Image;
+use crate::batch::{BatchSource, Samples};
+use crate::manifest::{Manifest, Split};
 use crate::rng::Stream;
-use crate::trainer::{BatchSource, Samples};
+use crate::sampler::WindowSampler;
+use crate::store::DataRoot;
 
 /// Tag of the sampling streams.
 const SOURCE_STREAM: u64 = 0x0044_4154_4153;

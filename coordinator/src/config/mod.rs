@@ -5,21 +5,29 @@
 use std::path::Path;
 
 use serde::{Deserialize, Deserializer, Serialize};
-use trainer_core::XFactorConfig;
-use trainer_core::data::{DatasetKind, DatasetSampling, SamplerConfig};
-use trainer_core::objective::{Stage1Config, Stage2Config};
-use trainer_core::optim::{AdamWConfig, Schedule};
+use settings::data::{DatasetKind, DatasetSampling, SamplerConfig};
+use settings::evaluation::EvaluationSpec;
+use settings::objective::{ObjectiveSettings, Stage1Config, Stage2Config};
+use settings::optim::{AdamWConfig, Schedule};
+use settings::{Phase, XFactorConfig};
+
+mod values;
+
+pub use settings::DeviceChoice;
+pub use values::{NonEmpty, NonNegative, Positive};
+use values::{locate, pinpoint};
 
 /// Why a cluster YAML was refused.
 #[derive(Debug, thiserror::Error)]
 pub enum ConfigError {
     /// The file could not be read.
-    #[error("cannot read cluster config {path}: {reason}")]
+    #[error("cannot read cluster config {path}")]
     Read {
         /// The file.
         path: String,
         /// The OS error.
-        reason: String,
+        #[source]
+        source: std::io::Error,
     },
     /// Syntax, an unknown key or a bad value (the message names key, line and expectation).
     #[error("{path}: {message}")]
@@ -29,128 +37,6 @@ pub enum ConfigError {
         /// The parser's message, with key path and position.
         message: String,
     },
-}
-
-/// Marks a value a validated type refused, so [`pinpoint`] can find its key and line (serde
-/// reports such errors at the enclosing mapping).
-const REFUSED: &str = "refused value ";
-
-fn refused(value: &str, expectation: &str) -> String {
-    format!("{REFUSED}{value}: {expectation}")
-}
-
-/// Rewrites `<path>: refused value V: <expectation> at line L ...` into
-/// `<path>.<key>: <expectation>, found V at line N`, by finding the key holding `V` in the
-/// mapping that starts at line L.
-fn pinpoint(text: &str, message: &str) -> String {
-    let Some(start) = message.find(REFUSED) else {
-        return message.to_string();
-    };
-    let path = message[..start].trim_end_matches(": ").to_string();
-    let rest = &message[start + REFUSED.len()..];
-    let Some((value, tail)) = rest.split_once(": ") else {
-        return message.to_string();
-    };
-    let (expectation, position) = match tail.split_once(" at line ") {
-        Some((expectation, position)) => (expectation, Some(position)),
-        None => (tail, None),
-    };
-    let first_line: usize = position
-        .and_then(|p| p.split_whitespace().next())
-        .and_then(|l| l.parse().ok())
-        .unwrap_or(1);
-    for (index, line) in text.lines().enumerate().skip(first_line.saturating_sub(1)) {
-        for segment in line.split(['{', ',', '}']) {
-            if let Some((key, found)) = segment.split_once(':')
-                && found.trim() == value
-            {
-                let key = key.trim().trim_start_matches("- ");
-                let full = if path.is_empty() {
-                    key.to_string()
-                } else {
-                    format!("{path}.{key}")
-                };
-                return format!("{full}: {expectation}, found {value} at line {}", index + 1);
-            }
-        }
-    }
-    format!("{path}: {expectation}, found {value} (in the mapping at line {first_line})")
-}
-
-/// Line (1-based) of the block-style key `path` (e.g. `["stage1", "micro_batch"]`).
-fn locate(text: &str, path: &[&str]) -> Option<usize> {
-    let mut depth = 0;
-    let mut indent: Option<usize> = None;
-    for (index, line) in text.lines().enumerate() {
-        let trimmed = line.trim_start();
-        let here = line.len() - trimmed.len();
-        if indent.is_some_and(|i| here <= i) && !trimmed.is_empty() && depth > 0 {
-            return None;
-        }
-        let deeper = match indent {
-            None => here == 0,
-            Some(i) => here > i,
-        };
-        if deeper && trimmed.starts_with(&format!("{}:", path[depth])) {
-            depth += 1;
-            indent = Some(here);
-            if depth == path.len() {
-                return Some(index + 1);
-            }
-        }
-    }
-    None
-}
-
-/// A whole number of at least 1.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize)]
-pub struct Positive(pub u64);
-
-impl<'de> Deserialize<'de> for Positive {
-    fn deserialize<D: Deserializer<'de>>(deserializer: D) -> Result<Self, D::Error> {
-        let value = u64::deserialize(deserializer)?;
-        if value == 0 {
-            return Err(serde::de::Error::custom(refused(
-                "0",
-                "expected a positive whole number",
-            )));
-        }
-        Ok(Self(value))
-    }
-}
-
-/// A finite number of at least 0.
-#[derive(Debug, Clone, Copy, PartialEq, Serialize)]
-pub struct NonNegative(pub f64);
-
-impl<'de> Deserialize<'de> for NonNegative {
-    fn deserialize<D: Deserializer<'de>>(deserializer: D) -> Result<Self, D::Error> {
-        let value = f64::deserialize(deserializer)?;
-        if !value.is_finite() || value < 0.0 {
-            return Err(serde::de::Error::custom(refused(
-                &value.to_string(),
-                "expected a finite number >= 0",
-            )));
-        }
-        Ok(Self(value))
-    }
-}
-
-/// A string with something in it.
-#[derive(Debug, Clone, PartialEq, Eq, Serialize)]
-pub struct NonEmpty(pub String);
-
-impl<'de> Deserialize<'de> for NonEmpty {
-    fn deserialize<D: Deserializer<'de>>(deserializer: D) -> Result<Self, D::Error> {
-        let value = String::deserialize(deserializer)?;
-        if value.trim().is_empty() {
-            return Err(serde::de::Error::custom(refused(
-                "\"\"",
-                "expected a non-empty string",
-            )));
-        }
-        Ok(Self(value))
-    }
 }
 
 /// The whole cluster YAML.
@@ -194,7 +80,7 @@ pub struct ClusterConfig {
     /// training is done; the report lands under `<checkpoint.uri>/evaluation/`. Absent: no
     /// evaluation stage. Every key is optional (`evaluate: {}` takes the defaults).
     #[serde(default)]
-    pub evaluate: Option<evaluation::EvaluationSpec>,
+    pub evaluate: Option<EvaluationSpec>,
 }
 
 /// PEM files of the coordinator's TLS identity. They are read when the job starts, so a
@@ -224,18 +110,18 @@ pub enum AuthConfig {
 
 impl AuthConfig {
     /// The token, read from the environment when configured so.
-    pub fn resolve(&self) -> Result<String, String> {
+    pub fn resolve(&self) -> Result<String, TokenNotSet> {
         match self {
             Self::Token(token) => Ok(token.0.clone()),
-            Self::TokenEnv(name) => std::env::var(&name.0).map_err(|_| {
-                format!(
-                    "auth.token_env names `{}`, which is not set in the environment",
-                    name.0
-                )
-            }),
+            Self::TokenEnv(name) => std::env::var(&name.0).map_err(|_| TokenNotSet(name.0.clone())),
         }
     }
 }
+
+/// `auth.token_env` names a variable that is not set.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[error("auth.token_env names `{0}`, which is not set in the environment")]
+pub struct TokenNotSet(pub String);
 
 /// Model presets with the few overrides worth a YAML key.
 #[derive(Debug, Clone, PartialEq, Deserialize, Serialize)]
@@ -265,7 +151,7 @@ pub enum ModelPreset {
 
 impl ModelConfig {
     /// The model configuration, checked.
-    pub fn resolve(&self) -> Result<XFactorConfig, String> {
+    pub fn resolve(&self) -> Result<XFactorConfig, settings::model::ConfigError> {
         let mut config = match self.preset {
             ModelPreset::Tiny => XFactorConfig::tiny(32),
             ModelPreset::Benchmark => XFactorConfig::benchmark(),
@@ -275,10 +161,7 @@ impl ModelConfig {
             config.image_size = size;
         }
         config.round_qkv_bf16 = self.round_qkv_bf16;
-        config
-            .validate()
-            .map_err(|e| format!("model: {e}"))
-            .map(|()| config)
+        config.validate().map(|()| config)
     }
 }
 
@@ -386,33 +269,7 @@ fn fitted_schedule(steps: u64) -> Schedule {
     }
 }
 
-/// Objectives whose LPIPS weight the stage's `lpips_weight` key sets.
-pub trait WithLpipsWeight: Default {
-    /// Sets the weight.
-    fn set_lpips_weight(&mut self, weight: f64);
-    /// The weight.
-    fn lpips_weight(&self) -> f64;
-}
-
-impl WithLpipsWeight for Stage1Config {
-    fn set_lpips_weight(&mut self, weight: f64) {
-        self.lpips_weight = weight;
-    }
-    fn lpips_weight(&self) -> f64 {
-        self.lpips_weight
-    }
-}
-
-impl WithLpipsWeight for Stage2Config {
-    fn set_lpips_weight(&mut self, weight: f64) {
-        self.lpips_weight = weight;
-    }
-    fn lpips_weight(&self) -> f64 {
-        self.lpips_weight
-    }
-}
-
-impl<'de, O: Deserialize<'de> + WithLpipsWeight> Deserialize<'de> for StageConfig<O> {
+impl<'de, O: Deserialize<'de> + ObjectiveSettings> Deserialize<'de> for StageConfig<O> {
     fn deserialize<D: Deserializer<'de>>(deserializer: D) -> Result<Self, D::Error> {
         let raw = RawStage::<O>::deserialize(deserializer)?;
         let mut objective = raw.objective.unwrap_or_default();
@@ -440,30 +297,6 @@ pub struct CheckpointConfig {
     pub uri: NonEmpty,
     /// Commit a checkpoint every this many steps (and after each stage's last).
     pub every: Positive,
-}
-
-/// Which compute device workers train on.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, Serialize, Default)]
-#[serde(rename_all = "snake_case")]
-pub enum DeviceChoice {
-    /// wgpu when a GPU adapter is present, the CPU otherwise.
-    #[default]
-    Auto,
-    /// burn's CPU backend.
-    Cpu,
-    /// burn-wgpu.
-    Wgpu,
-}
-
-impl DeviceChoice {
-    /// The name assignments carry to workers (the YAML spelling).
-    pub fn name(self) -> &'static str {
-        match self {
-            Self::Auto => "auto",
-            Self::Cpu => "cpu",
-            Self::Wgpu => "wgpu",
-        }
-    }
 }
 
 /// Group size and liveness settings.
@@ -511,7 +344,7 @@ impl ClusterConfig {
     pub fn from_file(path: &Path) -> Result<Self, ConfigError> {
         let text = std::fs::read_to_string(path).map_err(|e| ConfigError::Read {
             path: path.display().to_string(),
-            reason: e.to_string(),
+            source: e,
         })?;
         Self::from_yaml(&text, &path.display().to_string())
     }
@@ -534,7 +367,7 @@ impl ClusterConfig {
             |path: &[&str]| locate(text, path).map_or(String::new(), |l| format!(" at line {l}"));
         self.model
             .resolve()
-            .map_err(|e| format!("{e}{}", at(&["model"])))?;
+            .map_err(|e| format!("model: {e}{}", at(&["model"])))?;
         let batches = [
             (
                 "stage1",
@@ -608,12 +441,13 @@ impl ClusterConfig {
     }
 
     /// The model configuration (already checked when the file was read).
-    pub fn model_config(&self) -> Result<XFactorConfig, String> {
+    pub fn model_config(&self) -> Result<XFactorConfig, settings::model::ConfigError> {
         self.model.resolve()
     }
 
-    /// The window sampler of `stage` (1 or 2) with the datasets' overrides.
-    pub fn sampler(&self, stage: u32) -> SamplerConfig {
+    /// The window sampler of training stage `phase` with the datasets' overrides.
+    pub fn sampler(&self, phase: Phase) -> SamplerConfig {
+        let stage = phase.stage_number().unwrap_or(2);
         let mut sampler = if stage == 1 {
             SamplerConfig::stage1()
         } else {
@@ -660,147 +494,4 @@ impl ClusterConfig {
 }
 
 #[cfg(test)]
-mod tests {
-    use super::*;
-
-    const GOOD: &str = "job: demo
-auth:
-  token: abc
-model:
-  preset: tiny
-  image_size: 32
-data:
-  datasets:
-    - kind: re10k
-      uri: /data/re10k
-      stage1: {weight: 2, window_begin: 3, window_end: 9}
-stage1:
-  steps: 10
-  global_batch: 8
-  micro_batch: 4
-  lpips_weight: 0
-stage2:
-  steps: 5
-  global_batch: 8
-  micro_batch: 2
-  lpips_weight: 0
-checkpoint:
-  uri: /tmp/ckpt
-  every: 5
-";
-
-    fn error_of(yaml: &str) -> String {
-        ClusterConfig::from_yaml(yaml, "cluster.yaml")
-            .expect_err("the YAML must be refused")
-            .to_string()
-    }
-
-    #[test]
-    fn a_good_file_resolves_with_paper_defaults_where_silent() {
-        let config = ClusterConfig::from_yaml(GOOD, "cluster.yaml").unwrap();
-        assert_eq!(config.stage1.steps, 10);
-        assert_eq!(config.stage1.optimizer, AdamWConfig::default());
-        assert_eq!(config.stage1.schedule.total_steps, 10);
-        assert_eq!(config.stage1.schedule.peak_lr, 4e-4);
-        assert_eq!(config.workers.expected.0, 2);
-        let sampler = config.sampler(1);
-        assert_eq!(sampler.datasets.len(), 1);
-        assert_eq!(sampler.datasets[0].weight, 2.0);
-        assert_eq!(sampler.datasets[0].window_end, 9);
-        let stage2 = config.sampler(2);
-        assert_eq!(
-            stage2.datasets[0].window_end, 200,
-            "paper default for RE10K"
-        );
-        assert_eq!(stage2.frames, 6);
-        assert_eq!(config.auth.resolve().unwrap(), "abc");
-    }
-
-    #[test]
-    fn an_unknown_key_is_named_with_its_line() {
-        let yaml = GOOD.replace("  micro_batch: 2\n", "  micro_batch: 2\n  micro_bacth: 3\n");
-        let error = error_of(&yaml);
-        assert!(error.contains("micro_bacth"), "{error}");
-        assert!(error.contains("stage2"), "{error}");
-        assert!(error.contains("line 21"), "{error}");
-        assert!(error.contains("expected one of"), "{error}");
-    }
-
-    #[test]
-    fn the_evaluation_section_takes_defaults_and_names_unknown_keys() {
-        let config =
-            ClusterConfig::from_yaml(&format!("{GOOD}evaluate: {{tps_pairs: 4}}\n"), "t.yaml")
-                .unwrap_or_else(|e| panic!("{e}"));
-        let spec = config.evaluate.expect("an evaluation");
-        assert_eq!(spec.tps_pairs, 4);
-        assert_eq!(spec.probe, evaluation::EvaluationSpec::default().probe);
-        let error = error_of(&format!("{GOOD}evaluate:\n  tps_pairz: 4\n"));
-        assert!(error.contains("tps_pairz"), "{error}");
-        assert!(error.contains("evaluate"), "{error}");
-        assert!(error.contains("line"), "{error}");
-        let limits = error_of(&format!(
-            "{GOOD}evaluate:\n  scenes: 3\n  probe: {{test_scenes: 3}}\n"
-        ));
-        assert!(limits.contains("evaluate.probe.test_scenes"), "{limits}");
-        assert!(limits.contains("line"), "{limits}");
-    }
-
-    #[test]
-    fn bad_values_name_the_key_the_line_and_the_expectation() {
-        let zero = error_of(&GOOD.replace("  steps: 10", "  steps: 0"));
-        assert!(zero.contains("stage1.steps"), "{zero}");
-        assert!(zero.contains("line 13"), "{zero}");
-        assert!(zero.contains("positive whole number"), "{zero}");
-
-        let negative = error_of(&GOOD.replace("weight: 2,", "weight: -1,"));
-        assert!(
-            negative.contains("data.datasets[0].stage1.weight"),
-            "{negative}"
-        );
-        assert!(negative.contains("line 11"), "{negative}");
-        assert!(negative.contains(">= 0"), "{negative}");
-
-        let kind = error_of(&GOOD.replace("kind: re10k", "kind: imagenet"));
-        assert!(kind.contains("unknown variant `imagenet`"), "{kind}");
-        assert!(kind.contains("line 9"), "{kind}");
-
-        let batch = error_of(&GOOD.replace("  micro_batch: 4", "  micro_batch: 3"));
-        assert!(batch.contains("multiple of micro_batch 3"), "{batch}");
-        assert!(batch.contains("stage1.micro_batch"), "{batch}");
-        assert!(batch.contains("line 15"), "{batch}");
-
-        let text = error_of(&GOOD.replace("every: 5", "every: often"));
-        assert!(text.contains("checkpoint.every"), "{text}");
-        assert!(text.contains("invalid type"), "{text}");
-    }
-
-    #[test]
-    fn lpips_without_weights_and_inconsistent_workers_are_refused() {
-        let lpips =
-            error_of(&GOOD.replace("  lpips_weight: 0\nstage2", "  lpips_weight: 0.5\nstage2"));
-        assert!(lpips.contains("lpips_weights"), "{lpips}");
-        let workers = error_of(&format!("{GOOD}workers:\n  expected: 2\n  minimum: 3\n"));
-        assert!(
-            workers.contains("workers.minimum (3) exceeds workers.expected (2)"),
-            "{workers}"
-        );
-        let malformed = error_of("job: [unclosed");
-        assert!(malformed.contains("line 1"), "{malformed}");
-        let missing = error_of(&GOOD.replace("checkpoint:\n  uri: /tmp/ckpt\n  every: 5\n", ""));
-        assert!(missing.contains("missing field `checkpoint`"), "{missing}");
-    }
-
-    #[test]
-    fn a_token_variable_that_is_not_set_is_named() {
-        let yaml = GOOD.replace(
-            "  token: abc",
-            "  token_env: XFACTOR_TEST_TOKEN_THAT_IS_NOT_SET",
-        );
-        let config = ClusterConfig::from_yaml(&yaml, "cluster.yaml").unwrap();
-        let error = config.auth.resolve().unwrap_err();
-        assert!(
-            error.contains("XFACTOR_TEST_TOKEN_THAT_IS_NOT_SET"),
-            "{error}"
-        );
-    }
-}
+mod tests;

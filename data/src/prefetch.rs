@@ -6,7 +6,7 @@ use std::collections::BTreeMap;
 use std::sync::{Arc, Condvar, Mutex, MutexGuard, PoisonError};
 use std::thread::JoinHandle;
 
-use crate::trainer::{BatchSource, Samples};
+use crate::batch::{BatchSource, Samples};
 
 /// The request pattern the trainer follows: for each step, micro-batches of `micro_batch`
 /// samples covering `first_sample..first_sample + global_batch` (a data-parallel rank asks for
@@ -191,7 +191,7 @@ impl<S: BatchSource + Send + 'static> Drop for Prefetched<S> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::augment::Image;
+    use crate::batch::Image;
     use std::sync::atomic::{AtomicU64, Ordering};
     use std::time::Duration;
 

@@ -2,102 +2,31 @@
 //! its curriculum, the mixture over datasets, stage 2's long-baseline weighting and reference
 //! band.
 
-use serde::{Deserialize, Serialize};
+use settings::data::{DatasetKind, DatasetSampling, SamplerConfig};
 
-use super::manifest::DatasetKind;
 use crate::rng::Stream;
 
-/// Sampling settings of one dataset.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct DatasetSampling {
-    /// The dataset.
-    pub dataset: DatasetKind,
-    /// Mixture weight (relative).
-    pub weight: f64,
-    /// Largest window length at step 0.
-    pub window_begin: usize,
-    /// Largest window length once the curriculum is over.
-    pub window_end: usize,
-}
-
-/// Sampling settings of one stage (defaults per stage: the paper's).
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct SamplerConfig {
-    /// Frames per sample (2 in stage 1, 6 in stage 2).
-    pub frames: usize,
-    /// Steps over which the largest window grows from `window_begin` to `window_end`.
-    pub curriculum_steps: u64,
-    /// Probability that the frame order is reversed.
-    pub reverse_probability: f64,
-    /// Favour long windows with `0.8 exp(-((u - 0.7) / 0.25)^2) + 0.2` (stage 2).
-    pub long_baseline: bool,
-    /// Keep the reference (middlest) frame within `band * window / 2` of both ends (stage 2:
-    /// `1.25`).
-    pub reference_band: Option<f64>,
-    /// Per-dataset settings.
-    pub datasets: Vec<DatasetSampling>,
-}
-
-fn datasets(entries: [(DatasetKind, f64, usize, usize); 4]) -> Vec<DatasetSampling> {
-    entries
-        .into_iter()
-        .map(
-            |(dataset, weight, window_begin, window_end)| DatasetSampling {
-                dataset,
-                weight,
-                window_begin,
-                window_end,
-            },
-        )
-        .collect()
-}
-
-impl SamplerConfig {
-    /// Stage 1: pairs; CO3Dv2 `9 -> 20`, DL3DV `5 -> 10`, RE10K `40 -> 100`, MVImgNet `5 -> 10`,
-    /// equal weights.
-    pub fn stage1() -> Self {
-        Self {
-            frames: 2,
-            curriculum_steps: 50_000,
-            reverse_probability: 0.5,
-            long_baseline: false,
-            reference_band: None,
-            datasets: datasets([
-                (DatasetKind::Co3dv2, 1.0, 9, 20),
-                (DatasetKind::Dl3dv, 1.0, 5, 10),
-                (DatasetKind::Re10k, 1.0, 40, 100),
-                (DatasetKind::Mvimgnet, 1.0, 5, 10),
-            ]),
-        }
-    }
-
-    /// Stage 2: 6 frames; CO3Dv2 `9 -> 40` (2), DL3DV `6 -> 20` (5), RE10K `40 -> 200` (3),
-    /// MVImgNet `6 -> 20` (2); long baselines favoured; reference band 1.25.
-    pub fn stage2() -> Self {
-        Self {
-            frames: 6,
-            curriculum_steps: 50_000,
-            reverse_probability: 0.5,
-            long_baseline: true,
-            reference_band: Some(1.25),
-            datasets: datasets([
-                (DatasetKind::Co3dv2, 2.0, 9, 40),
-                (DatasetKind::Dl3dv, 5.0, 6, 20),
-                (DatasetKind::Re10k, 3.0, 40, 200),
-                (DatasetKind::Mvimgnet, 2.0, 6, 20),
-            ]),
-        }
-    }
-
-    /// The settings of `dataset`, if it takes part.
-    pub fn dataset(&self, dataset: DatasetKind) -> Option<&DatasetSampling> {
-        self.datasets.iter().find(|d| d.dataset == dataset)
-    }
-
+/// The sampler's draws from its settings (the settings live in `settings`, where the
+/// coordinator resolves them without linking this crate's I/O).
+pub trait WindowSampler {
     /// Draws a dataset with probability proportional to its weight, among `available` ones.
-    pub fn choose_dataset(
+    fn choose_dataset(&self, available: &[DatasetKind], stream: &mut Stream)
+    -> Option<DatasetKind>;
+    /// The largest window length of `dataset` at `step` (linear ramp, then constant).
+    fn max_window(&self, dataset: &DatasetSampling, step: u64) -> usize;
+    /// Draws the frames of one sample from a sequence of `length` frames of `dataset` at `step`.
+    /// Returns `None` when the sequence is shorter than `frames`.
+    fn draw_window(
+        &self,
+        dataset: &DatasetSampling,
+        length: usize,
+        step: u64,
+        stream: &mut Stream,
+    ) -> Option<WindowDraw>;
+}
+
+impl WindowSampler for SamplerConfig {
+    fn choose_dataset(
         &self,
         available: &[DatasetKind],
         stream: &mut Stream,
@@ -118,8 +47,7 @@ impl SamplerConfig {
         candidates.last().map(|d| d.dataset)
     }
 
-    /// The largest window length of `dataset` at `step` (linear ramp, then constant).
-    pub fn max_window(&self, dataset: &DatasetSampling, step: u64) -> usize {
+    fn max_window(&self, dataset: &DatasetSampling, step: u64) -> usize {
         let progress = if self.curriculum_steps == 0 {
             1.0
         } else {
@@ -130,9 +58,7 @@ impl SamplerConfig {
         (begin + (end - begin) * progress).round() as usize
     }
 
-    /// Draws the frames of one sample from a sequence of `length` frames of `dataset` at `step`.
-    /// Returns `None` when the sequence is shorter than `frames`.
-    pub fn draw_window(
+    fn draw_window(
         &self,
         dataset: &DatasetSampling,
         length: usize,

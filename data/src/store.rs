@@ -18,24 +18,34 @@ const READ_ATTEMPTS: u32 = 3;
 #[derive(Debug, thiserror::Error)]
 pub enum StoreError {
     /// The URI names no store this build can open.
-    #[error("cannot open dataset root `{uri}`: {reason}")]
+    #[error("cannot open dataset root `{uri}`")]
     Open {
         /// The URI as given.
         uri: String,
         /// What was wrong with it.
-        reason: String,
+        #[source]
+        source: Box<dyn std::error::Error + Send + Sync>,
     },
-    /// Listing or reading failed.
-    #[error("{uri}: {action} `{path}` failed: {reason}")]
+    /// The object does not exist: a new job's `job.json`, or a frame deleted after indexing.
+    #[error("{uri}: `{path}` does not exist")]
+    NotFound {
+        /// The root.
+        uri: String,
+        /// Object path relative to the root.
+        path: String,
+    },
+    /// The store was reached but the operation failed, or it could not be reached.
+    #[error("{uri}: {action} `{path}` failed")]
     Io {
-        /// The dataset root.
+        /// The root.
         uri: String,
         /// `list`, `read` or `write`.
         action: &'static str,
         /// Object path relative to the root.
         path: String,
-        /// The store's error.
-        reason: String,
+        /// The store's error (boxed: it is large, and errors travel through every read).
+        #[source]
+        source: Box<object_store::Error>,
     },
 }
 
@@ -61,30 +71,30 @@ pub struct Listed {
 impl DataRoot {
     /// Opens a root from a plain path or a URI.
     pub fn open(uri: &str) -> Result<Self, StoreError> {
-        let open_error = |reason: String| StoreError::Open {
+        let open_error = |source: Box<dyn std::error::Error + Send + Sync>| StoreError::Open {
             uri: uri.to_string(),
-            reason,
+            source,
         };
         if !uri.contains("://") {
             let path = std::path::Path::new(uri);
             let absolute = std::fs::canonicalize(path)
-                .map_err(|e| open_error(format!("{e} (no such local directory)")))?;
+                .map_err(|e| open_error(format!("{e} (no such local directory)").into()))?;
             if !absolute.is_dir() {
-                return Err(open_error("not a directory".to_string()));
+                return Err(open_error("not a directory".into()));
             }
-            let store = LocalFileSystem::new_with_prefix(&absolute)
-                .map_err(|e| open_error(e.to_string()))?;
+            let store =
+                LocalFileSystem::new_with_prefix(&absolute).map_err(|e| open_error(e.into()))?;
             return Ok(Self {
                 store: Arc::new(store),
                 prefix: Path::default(),
                 uri: uri.to_string(),
             });
         }
-        let url = url::Url::parse(uri).map_err(|e| open_error(e.to_string()))?;
+        let url = url::Url::parse(uri).map_err(|e| open_error(e.into()))?;
         if url.scheme() == "file" {
             let local = url
                 .to_file_path()
-                .map_err(|()| open_error("not a local file path".to_string()))?;
+                .map_err(|()| open_error("not a local file path".into()))?;
             let mut root = Self::open(&local.to_string_lossy())?;
             root.uri = uri.to_string();
             return Ok(root);
@@ -94,8 +104,8 @@ impl DataRoot {
                 .iter()
                 .any(|prefix| key.starts_with(prefix))
         });
-        let (store, prefix) = object_store::parse_url_opts(&url, credentials)
-            .map_err(|e| open_error(e.to_string()))?;
+        let (store, prefix) =
+            object_store::parse_url_opts(&url, credentials).map_err(|e| open_error(e.into()))?;
         Ok(Self {
             store: Arc::from(store),
             prefix,
@@ -117,7 +127,7 @@ impl DataRoot {
         if let Some(dir) = local {
             std::fs::create_dir_all(&dir).map_err(|e| StoreError::Open {
                 uri: uri.to_string(),
-                reason: format!("cannot create the directory: {e}"),
+                source: Box::new(e),
             })?;
         }
         Self::open(uri)
@@ -150,12 +160,17 @@ impl DataRoot {
         }
     }
 
-    fn io_error(&self, action: &'static str, path: &str, reason: impl ToString) -> StoreError {
+    fn io_error(
+        &self,
+        action: &'static str,
+        path: &str,
+        source: object_store::Error,
+    ) -> StoreError {
         StoreError::Io {
             uri: self.uri.clone(),
             action,
             path: path.to_string(),
-            reason: reason.to_string(),
+            source: Box::new(source),
         }
     }
 
@@ -199,7 +214,10 @@ impl DataRoot {
             match result {
                 Ok(bytes) => return Ok(bytes.to_vec()),
                 Err(object_store::Error::NotFound { .. }) => {
-                    return Err(self.io_error("read", relative, "no such object"));
+                    return Err(StoreError::NotFound {
+                        uri: self.uri.clone(),
+                        path: relative.to_string(),
+                    });
                 }
                 Err(error) if attempt >= READ_ATTEMPTS => {
                     return Err(self.io_error("read", relative, error));

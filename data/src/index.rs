@@ -14,8 +14,10 @@
 
 use std::collections::{BTreeMap, BTreeSet};
 
-use super::manifest::{DatasetKind, Manifest, Sequence, Split};
-use super::store::{DataRoot, StoreError};
+use settings::data::DatasetKind;
+
+use crate::manifest::{Manifest, Sequence, Split};
+use crate::store::{DataRoot, StoreError};
 
 /// Sequences with fewer frames are dropped.
 pub const MIN_FRAMES: usize = 10;

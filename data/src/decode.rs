@@ -5,7 +5,7 @@
 use image::imageops::{self, FilterType};
 use image::{ImageReader, RgbImage};
 
-use crate::augment::Image;
+use crate::batch::Image;
 
 /// Why a frame could not be turned into an image; the loader skips and counts such frames.
 #[derive(Debug, thiserror::Error)]

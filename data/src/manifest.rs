@@ -1,35 +1,7 @@
 //! What an indexer produces: sequences with their ordered frame objects, dataset and split.
 
 use serde::{Deserialize, Serialize};
-
-/// The four datasets of the aggregate training set.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum DatasetKind {
-    /// RealEstate10K.
-    Re10k,
-    /// DL3DV-10K.
-    Dl3dv,
-    /// MVImgNet.
-    Mvimgnet,
-    /// CO3Dv2.
-    Co3dv2,
-}
-
-impl DatasetKind {
-    /// Every dataset, in a fixed order.
-    pub const ALL: [DatasetKind; 4] = [Self::Re10k, Self::Dl3dv, Self::Mvimgnet, Self::Co3dv2];
-
-    /// The name used in configs and logs.
-    pub fn name(self) -> &'static str {
-        match self {
-            Self::Re10k => "re10k",
-            Self::Dl3dv => "dl3dv",
-            Self::Mvimgnet => "mvimgnet",
-            Self::Co3dv2 => "co3dv2",
-        }
-    }
-}
+use settings::data::DatasetKind;
 
 /// Train or test.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Serialize, Deserialize)]

@@ -1,17 +1,18 @@
 //! Indexing through object_store (in-memory, plain path, `file://`), error cases, and sampling
 //! batches from the two real example videos laid out as RE10K.
 
+#[path = "../../trainer-core/tests/common/mod.rs"]
 mod common;
 
 use std::path::Path;
 
+use data::SamplerConfig;
+use data::index::{IndexError, index};
+use data::source::{DatasetSource, IndexedDataset};
+use data::store::DataRoot;
+use data::{BatchSource, Samples};
+use data::{DatasetKind, Manifest, Split};
 use image::{ImageFormat, RgbImage};
-use trainer_core::data::index::{IndexError, index};
-use trainer_core::data::manifest::{DatasetKind, Manifest, Split};
-use trainer_core::data::sampler::SamplerConfig;
-use trainer_core::data::source::{DatasetSource, IndexedDataset};
-use trainer_core::data::store::DataRoot;
-use trainer_core::trainer::{BatchSource, Samples};
 
 fn runtime() -> tokio::runtime::Runtime {
     tokio::runtime::Builder::new_current_thread()
@@ -217,8 +218,8 @@ fn corrupt_frames_are_skipped_and_counted() {
 
 #[test]
 fn generated_scenes_write_an_re10k_tree_that_indexes_and_decodes() {
-    use trainer_core::scenes::SceneConfig;
-    use trainer_core::synthetic::SyntheticDataset;
+    use data::scenes::SceneConfig;
+    use data::synthetic::SyntheticDataset;
     let rt = runtime();
     let config = SceneConfig {
         image_size: 32,
@@ -240,7 +241,7 @@ fn generated_scenes_write_an_re10k_tree_that_indexes_and_decodes() {
     assert_eq!(cameras.lines().count(), 13, "header + one line per frame");
     assert_eq!(cameras.lines().nth(1).unwrap().split(' ').count(), 19);
     let bytes = rt.block_on(root.read(&sequence.frames[5])).unwrap();
-    let frame = trainer_core::data::decode::decode_frame(&bytes, &sequence.frames[5], 32).unwrap();
+    let frame = data::decode::decode_frame(&bytes, &sequence.frames[5], 32).unwrap();
     let original = &dataset.sequence(0, 0).unwrap().frames[5];
     let worst = frame
         .pixels
@@ -252,7 +253,7 @@ fn generated_scenes_write_an_re10k_tree_that_indexes_and_decodes() {
 
 #[test]
 fn manifest_caches_are_reused_until_the_listing_changes() {
-    use trainer_core::data::cache::{CacheError, CacheUse, load_or_index, read_cached};
+    use data::cache::{CacheError, CacheUse, load_or_index, read_cached};
     let rt = runtime();
     let root = DataRoot::in_memory("memory://cached");
     rt.block_on(write_trees(&[(DatasetKind::Re10k, &root)]));

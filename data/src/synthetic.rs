@@ -1,12 +1,12 @@
 //! A dataset of generated scenes: every trajectory rendered in every scene, so the same camera
 //! motion exists in many places. It feeds the trainer in tests, demos and evaluation.
 
-use crate::augment::Image;
-use crate::data::manifest::Split;
-use crate::data::store::{DataRoot, StoreError};
+use crate::batch::Image;
+use crate::batch::{BatchSource, Samples};
+use crate::manifest::Split;
 use crate::rng::Stream;
 use crate::scenes::{CameraPose, Scene, SceneConfig, Trajectory};
-use crate::trainer::{BatchSource, Samples};
+use crate::store::{DataRoot, StoreError};
 
 /// Tag of the sampling streams.
 const SAMPLING_STREAM: u64 = 0x5359_4e54;

@@ -8,41 +8,27 @@
 
 use serde::{Deserialize, Serialize};
 
-use super::index::{IndexError, index_paths};
-use super::manifest::{DatasetKind, Manifest};
-use super::store::{DataRoot, Listed, StoreError};
+use crate::index::{IndexError, index_paths};
+use settings::data::{DatasetKind, ListingFingerprint};
+
+use crate::manifest::Manifest;
+use crate::store::{DataRoot, Listed, StoreError};
 
 /// Folder under the dataset root that holds cached manifests (never indexed as data).
 pub const CACHE_DIR: &str = ".xfactor";
 
-/// What the listing of a dataset root looked like: changes when objects are added, removed,
-/// resized or rewritten.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize)]
-pub struct ListingFingerprint {
-    /// Objects under the root (the cache itself excluded).
-    pub objects: u64,
-    /// Their total size in bytes.
-    pub bytes: u64,
-    /// The newest modification time, seconds since the epoch.
-    pub newest: i64,
-    /// CRC-32 of the sorted object paths.
-    pub paths_crc: u32,
-}
-
-impl ListingFingerprint {
-    /// The fingerprint of a listing (sorted by path, as [`DataRoot::list`] returns it).
-    pub fn of(listing: &[Listed]) -> Self {
-        let mut crc = crc32fast::Hasher::new();
-        for object in listing {
-            crc.update(object.path.as_bytes());
-            crc.update(b"\n");
-        }
-        Self {
-            objects: listing.len() as u64,
-            bytes: listing.iter().map(|l| l.size).sum(),
-            newest: listing.iter().map(|l| l.modified).max().unwrap_or(0),
-            paths_crc: crc.finalize(),
-        }
+/// The fingerprint of a listing (sorted by path, as [`DataRoot::list`] returns it).
+pub fn fingerprint(listing: &[Listed]) -> ListingFingerprint {
+    let mut crc = crc32fast::Hasher::new();
+    for object in listing {
+        crc.update(object.path.as_bytes());
+        crc.update(b"\n");
+    }
+    ListingFingerprint {
+        objects: listing.len() as u64,
+        bytes: listing.iter().map(|l| l.size).sum(),
+        newest: listing.iter().map(|l| l.modified).max().unwrap_or(0),
+        paths_crc: crc.finalize(),
     }
 }
 
@@ -65,14 +51,15 @@ pub enum CacheError {
     #[error(transparent)]
     Index(#[from] IndexError),
     /// The cache file is not a manifest.
-    #[error("{uri}/{path}: not a manifest cache: {reason}")]
+    #[error("{uri}/{path}: not a manifest cache")]
     Corrupt {
         /// Dataset root.
         uri: String,
         /// The cache object.
         path: String,
         /// What failed to parse.
-        reason: String,
+        #[source]
+        source: serde_json::Error,
     },
     /// The cache describes another listing than the one expected.
     #[error(
@@ -117,7 +104,7 @@ pub async fn load_or_index(
         .into_iter()
         .filter(|l| !l.path.starts_with(CACHE_DIR))
         .collect();
-    let fingerprint = ListingFingerprint::of(&listing);
+    let fingerprint = fingerprint(&listing);
     if listing.iter().all(|l| l.path != path)
         && let Ok(bytes) = root.read(&path).await
         && let Ok(cached) = serde_json::from_slice::<CachedManifest>(&bytes)
@@ -134,7 +121,7 @@ pub async fn load_or_index(
     let json = serde_json::to_vec(&cached).map_err(|e| CacheError::Corrupt {
         uri: root.uri().to_string(),
         path: path.clone(),
-        reason: e.to_string(),
+        source: e,
     })?;
     root.write(&path, json).await?;
     Ok((cached, CacheUse::Rebuilt))
@@ -152,7 +139,7 @@ pub async fn read_cached(
         serde_json::from_slice(&bytes).map_err(|e| CacheError::Corrupt {
             uri: root.uri().to_string(),
             path: path.clone(),
-            reason: e.to_string(),
+            source: e,
         })?;
     if cached.fingerprint != expected {
         return Err(CacheError::Stale {

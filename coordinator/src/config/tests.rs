@@ -1,0 +1,142 @@
+//! The cluster YAML: good files resolve, bad ones are refused naming key, line and rule.
+
+use super::*;
+
+const GOOD: &str = "job: demo
+auth:
+  token: abc
+model:
+  preset: tiny
+  image_size: 32
+data:
+  datasets:
+    - kind: re10k
+      uri: /data/re10k
+      stage1: {weight: 2, window_begin: 3, window_end: 9}
+stage1:
+  steps: 10
+  global_batch: 8
+  micro_batch: 4
+  lpips_weight: 0
+stage2:
+  steps: 5
+  global_batch: 8
+  micro_batch: 2
+  lpips_weight: 0
+checkpoint:
+  uri: /tmp/ckpt
+  every: 5
+";
+
+fn error_of(yaml: &str) -> String {
+    ClusterConfig::from_yaml(yaml, "cluster.yaml")
+        .expect_err("the YAML must be refused")
+        .to_string()
+}
+
+#[test]
+fn a_good_file_resolves_with_paper_defaults_where_silent() {
+    let config = ClusterConfig::from_yaml(GOOD, "cluster.yaml").unwrap();
+    assert_eq!(config.stage1.steps, 10);
+    assert_eq!(config.stage1.optimizer, AdamWConfig::default());
+    assert_eq!(config.stage1.schedule.total_steps, 10);
+    assert_eq!(config.stage1.schedule.peak_lr, 4e-4);
+    assert_eq!(config.workers.expected.0, 2);
+    let sampler = config.sampler(Phase::Stage1);
+    assert_eq!(sampler.datasets.len(), 1);
+    assert_eq!(sampler.datasets[0].weight, 2.0);
+    assert_eq!(sampler.datasets[0].window_end, 9);
+    let stage2 = config.sampler(Phase::Stage2);
+    assert_eq!(
+        stage2.datasets[0].window_end, 200,
+        "paper default for RE10K"
+    );
+    assert_eq!(stage2.frames, 6);
+    assert_eq!(config.auth.resolve().unwrap(), "abc");
+}
+
+#[test]
+fn an_unknown_key_is_named_with_its_line() {
+    let yaml = GOOD.replace("  micro_batch: 2\n", "  micro_batch: 2\n  micro_bacth: 3\n");
+    let error = error_of(&yaml);
+    assert!(error.contains("micro_bacth"), "{error}");
+    assert!(error.contains("stage2"), "{error}");
+    assert!(error.contains("line 21"), "{error}");
+    assert!(error.contains("expected one of"), "{error}");
+}
+
+#[test]
+fn the_evaluation_section_takes_defaults_and_names_unknown_keys() {
+    let config = ClusterConfig::from_yaml(&format!("{GOOD}evaluate: {{tps_pairs: 4}}\n"), "t.yaml")
+        .unwrap_or_else(|e| panic!("{e}"));
+    let spec = config.evaluate.expect("an evaluation");
+    assert_eq!(spec.tps_pairs, 4);
+    assert_eq!(spec.probe, EvaluationSpec::default().probe);
+    let error = error_of(&format!("{GOOD}evaluate:\n  tps_pairz: 4\n"));
+    assert!(error.contains("tps_pairz"), "{error}");
+    assert!(error.contains("evaluate"), "{error}");
+    assert!(error.contains("line"), "{error}");
+    let limits = error_of(&format!(
+        "{GOOD}evaluate:\n  scenes: 3\n  probe: {{test_scenes: 3}}\n"
+    ));
+    assert!(limits.contains("evaluate.probe.test_scenes"), "{limits}");
+    assert!(limits.contains("line"), "{limits}");
+}
+
+#[test]
+fn bad_values_name_the_key_the_line_and_the_expectation() {
+    let zero = error_of(&GOOD.replace("  steps: 10", "  steps: 0"));
+    assert!(zero.contains("stage1.steps"), "{zero}");
+    assert!(zero.contains("line 13"), "{zero}");
+    assert!(zero.contains("positive whole number"), "{zero}");
+
+    let negative = error_of(&GOOD.replace("weight: 2,", "weight: -1,"));
+    assert!(
+        negative.contains("data.datasets[0].stage1.weight"),
+        "{negative}"
+    );
+    assert!(negative.contains("line 11"), "{negative}");
+    assert!(negative.contains(">= 0"), "{negative}");
+
+    let kind = error_of(&GOOD.replace("kind: re10k", "kind: imagenet"));
+    assert!(kind.contains("unknown variant `imagenet`"), "{kind}");
+    assert!(kind.contains("line 9"), "{kind}");
+
+    let batch = error_of(&GOOD.replace("  micro_batch: 4", "  micro_batch: 3"));
+    assert!(batch.contains("multiple of micro_batch 3"), "{batch}");
+    assert!(batch.contains("stage1.micro_batch"), "{batch}");
+    assert!(batch.contains("line 15"), "{batch}");
+
+    let text = error_of(&GOOD.replace("every: 5", "every: often"));
+    assert!(text.contains("checkpoint.every"), "{text}");
+    assert!(text.contains("invalid type"), "{text}");
+}
+
+#[test]
+fn lpips_without_weights_and_inconsistent_workers_are_refused() {
+    let lpips = error_of(&GOOD.replace("  lpips_weight: 0\nstage2", "  lpips_weight: 0.5\nstage2"));
+    assert!(lpips.contains("lpips_weights"), "{lpips}");
+    let workers = error_of(&format!("{GOOD}workers:\n  expected: 2\n  minimum: 3\n"));
+    assert!(
+        workers.contains("workers.minimum (3) exceeds workers.expected (2)"),
+        "{workers}"
+    );
+    let malformed = error_of("job: [unclosed");
+    assert!(malformed.contains("line 1"), "{malformed}");
+    let missing = error_of(&GOOD.replace("checkpoint:\n  uri: /tmp/ckpt\n  every: 5\n", ""));
+    assert!(missing.contains("missing field `checkpoint`"), "{missing}");
+}
+
+#[test]
+fn a_token_variable_that_is_not_set_is_named() {
+    let yaml = GOOD.replace(
+        "  token: abc",
+        "  token_env: XFACTOR_TEST_TOKEN_THAT_IS_NOT_SET",
+    );
+    let config = ClusterConfig::from_yaml(&yaml, "cluster.yaml").unwrap();
+    let error = config.auth.resolve().unwrap_err().to_string();
+    assert!(
+        error.contains("XFACTOR_TEST_TOKEN_THAT_IS_NOT_SET"),
+        "{error}"
+    );
+}

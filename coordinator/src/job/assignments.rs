@@ -1,0 +1,85 @@
+//! The typed assignments a group's members receive: what to train or evaluate, from where, and
+//! with which settings.
+
+use proto::convert::{device_to_wire, phase_to_wire};
+use proto::v1::{Assignment, EvaluateAssignment, Finish, TrainAssignment, assignment::Work};
+use settings::Phase;
+
+use super::records::Durable;
+use crate::plan::Plan;
+
+/// The checkpoint prefix of `phase` under the job's checkpoint URI.
+fn prefix(plan: &Plan, leaf: &str) -> String {
+    format!(
+        "{}/{leaf}",
+        plan.config.checkpoint.uri.0.trim_end_matches('/')
+    )
+}
+
+/// Rank `rank` of a training group of `peers` in `phase` (stage 1 or 2).
+pub fn train(
+    plan: &Plan,
+    durable: &Durable,
+    generation: u64,
+    phase: Phase,
+    rank: usize,
+    peers: &[String],
+) -> Assignment {
+    let stage = plan.stage(phase);
+    let config = &plan.config;
+    let resume_from = durable
+        .last_commit
+        .as_ref()
+        .filter(|c| c.phase == phase)
+        .map(|c| c.location.clone())
+        .unwrap_or_default();
+    let init_weights_from = if phase == Phase::Stage2 && resume_from.is_empty() {
+        durable.stage1_final.clone().unwrap_or_default()
+    } else {
+        String::new()
+    };
+    Assignment {
+        generation,
+        work: Some(Work::Train(TrainAssignment {
+            rank: rank as u32,
+            world_size: peers.len() as u32,
+            peers: peers.to_vec(),
+            phase: phase_to_wire(phase) as i32,
+            total_steps: stage.steps,
+            resume_from,
+            init_weights_from,
+            checkpoint_prefix: prefix(plan, phase.name()),
+            checkpoint_every: config.checkpoint.every.0,
+            checksum_every: config.workers.checksum_every.0,
+            lpips_weights: stage.lpips_weights.clone().unwrap_or_default(),
+            device: device_to_wire(config.workers.device) as i32,
+            model: Some((&plan.model).into()),
+            train: Some((&stage.train).into()),
+            data: Some((&stage.data).into()),
+        })),
+    }
+}
+
+/// The evaluation of stage 2's final weights, for the one worker of the group; `None` when
+/// the job has no evaluation section.
+pub fn evaluate(plan: &Plan, durable: &Durable, generation: u64) -> Option<Assignment> {
+    let spec = plan.config.evaluate.as_ref()?;
+    Some(Assignment {
+        generation,
+        work: Some(Work::Evaluate(EvaluateAssignment {
+            weights: durable.stage2_final.clone().unwrap_or_default(),
+            report_prefix: prefix(plan, "evaluation"),
+            device: device_to_wire(plan.config.workers.device) as i32,
+            model: Some((&plan.model).into()),
+            spec: Some(spec.into()),
+        })),
+    })
+}
+
+/// The end of the job.
+pub fn finish(generation: u64) -> Assignment {
+    Assignment {
+        generation,
+        work: Some(Work::Finish(Finish {})),
+    }
+}

@@ -1,0 +1,526 @@
+//! The job's state machine: membership, group generations, phase progress and commits. It is
+//! pure: every method takes the time as an argument and returns what changed, so the service
+//! drives it and the unit tests replay any schedule of events.
+//!
+//! A *generation* is one group of workers with fixed ranks. It ends when its stage ends or when
+//! a member is lost (heartbeat silence) or reports trouble; survivors, and any replacement that
+//! registered meanwhile, then form the next generation, which resumes from the last committed
+//! checkpoint. Nothing here knows about tensors.
+
+use std::collections::{BTreeMap, BTreeSet, HashMap};
+use std::time::{Duration, Instant};
+
+use proto::v1::{Assignment, StepReport};
+use settings::Phase;
+
+use crate::plan::Plan;
+
+mod assignments;
+mod queries;
+mod records;
+#[cfg(test)]
+mod tests;
+
+pub use records::{Commit, Durable, GenerationStart, Report, StepRecord};
+
+/// A registered worker.
+#[derive(Debug, Clone)]
+struct Member {
+    name: String,
+    address: String,
+    last_seen: Instant,
+    lost: bool,
+    waiting_after: Option<u64>,
+    finished_step: Option<(Phase, u64)>,
+    samples_per_s: f64,
+}
+
+/// The running group.
+#[derive(Debug, Clone)]
+struct Group {
+    generation: u64,
+    members: Vec<u64>,
+    phase: Phase,
+}
+
+/// Liveness and grouping settings.
+#[derive(Debug, Clone)]
+pub struct Timing {
+    /// Silence after which a worker is lost.
+    pub heartbeat_timeout: Duration,
+    /// Wait for `expected` this long before starting with `minimum`.
+    pub quorum_timeout: Duration,
+    /// Wait this long for a replacement after a loss.
+    pub regroup_grace: Duration,
+}
+
+/// Why the state machine refused a worker's request; the service maps each to a gRPC status.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum Refusal {
+    /// The worker id was never handed out by this coordinator.
+    #[error("unknown worker {0}: register first")]
+    UnknownWorker(u64),
+    /// The worker was declared lost (silence or leave) and must register again.
+    #[error("worker {0} was declared lost after missing heartbeats: register again")]
+    LostWorker(u64),
+    /// The request belongs to a generation that has ended.
+    #[error("generation {0} is no longer current; commit refused")]
+    StaleGeneration(u64),
+    /// The worker is not a member of the running group.
+    #[error("worker {0} is not in the current group")]
+    NotInGroup(u64),
+    /// The commit is for another phase than the job's.
+    #[error("commit for {commit} while the job is in {job}")]
+    WrongPhase {
+        /// The commit's phase.
+        commit: Phase,
+        /// The job's.
+        job: Phase,
+    },
+}
+
+/// The coordinator's whole state.
+pub struct JobState {
+    plan: Plan,
+    timing: Timing,
+    members: BTreeMap<u64, Member>,
+    /// The generation number before this coordinator formed its first group.
+    first_generation: u64,
+    next_worker: u64,
+    generation: u64,
+    group: Option<Group>,
+    durable: Durable,
+    assignments: BTreeMap<u64, Assignment>,
+    first_registration: Option<Instant>,
+    lost_at: Option<Instant>,
+    report: Report,
+    /// Position in `report.steps` of each `(phase, step, generation)`, so a report finds its
+    /// record without scanning the history.
+    step_index: HashMap<(Phase, u64, u64), usize>,
+    current_step: u64,
+    last_loss: f32,
+}
+
+/// Where this coordinator's worker ids and generation numbers start: its start time in
+/// microseconds since the epoch. Both grow by one per registration or re-formation, far slower
+/// than the clock, so a restarted coordinator never hands out an id or a generation that the
+/// workers of its predecessor still hold: a stale heartbeat cannot pass for a new member, and
+/// a stale collective inbox cannot be taken for a new generation's.
+fn incarnation_base() -> u64 {
+    std::time::SystemTime::now()
+        .duration_since(std::time::UNIX_EPOCH)
+        .map_or(0, |d| d.as_micros() as u64)
+}
+
+impl JobState {
+    /// A job at its start, or where `durable` (read back after a coordinator restart) left it.
+    pub fn new(plan: Plan, timing: Timing, durable: Option<Durable>) -> Self {
+        Self::starting_at(plan, timing, durable, incarnation_base())
+    }
+
+    /// As [`JobState::new`], with ids and generations counted from `base`.
+    fn starting_at(plan: Plan, timing: Timing, durable: Option<Durable>, base: u64) -> Self {
+        let job = plan.config.job.0.clone();
+        let mut durable = durable.unwrap_or_else(|| Durable::new(job.clone()));
+        if durable.phase == Phase::Evaluate && durable.stage2_final.is_none() {
+            tracing::warn!(
+                "the saved job state finished stage 2 before evaluation existed; nothing to evaluate"
+            );
+            durable.phase = Phase::Finished;
+        }
+        if durable.phase == Phase::Evaluate && plan.config.evaluate.is_none() {
+            durable.phase = Phase::Finished;
+        }
+        Self {
+            timing,
+            members: BTreeMap::new(),
+            next_worker: base + 1,
+            generation: base,
+            first_generation: base,
+            group: None,
+            assignments: BTreeMap::new(),
+            first_registration: None,
+            lost_at: None,
+            report: Report {
+                job,
+                stage1_final: durable.stage1_final.clone(),
+                evaluation: durable.evaluation.clone(),
+                ..Report::default()
+            },
+            step_index: HashMap::new(),
+            durable,
+            plan,
+            current_step: 0,
+            last_loss: f32::NAN,
+        }
+    }
+
+    /// The plan being run.
+    pub fn plan(&self) -> &Plan {
+        &self.plan
+    }
+
+    /// The job's phase.
+    pub fn phase(&self) -> Phase {
+        self.durable.phase
+    }
+
+    /// Whether both stages (and the evaluation, when the job has one) are done.
+    pub fn finished(&self) -> bool {
+        self.durable.phase == Phase::Finished
+    }
+
+    /// The phase after `phase` in this job.
+    fn next_phase(&self, phase: Phase) -> Phase {
+        match phase {
+            Phase::Stage1 => Phase::Stage2,
+            Phase::Stage2 if self.plan.config.evaluate.is_some() => Phase::Evaluate,
+            Phase::Stage2 | Phase::Evaluate | Phase::Finished => Phase::Finished,
+        }
+    }
+
+    /// Steps of `phase`; the evaluation counts as one.
+    fn phase_steps(&self, phase: Phase) -> u64 {
+        if phase.is_training() {
+            self.plan.stage(phase).steps
+        } else {
+            1
+        }
+    }
+
+    /// State to persist after a commit.
+    pub fn durable(&self) -> &Durable {
+        &self.durable
+    }
+
+    /// The report so far.
+    pub fn report(&self) -> Report {
+        let mut report = self.report.clone();
+        report.outcome = if self.finished() {
+            "finished".into()
+        } else {
+            format!("stopped in {}", self.durable.phase)
+        };
+        report
+    }
+
+    /// Adds a worker; returns its id.
+    pub fn register(&mut self, name: String, address: String, now: Instant) -> u64 {
+        let id = self.next_worker;
+        self.next_worker += 1;
+        self.first_registration.get_or_insert(now);
+        tracing::info!(worker = id, %name, %address, "worker registered");
+        self.members.insert(
+            id,
+            Member {
+                name,
+                address,
+                last_seen: now,
+                lost: false,
+                waiting_after: None,
+                finished_step: None,
+                samples_per_s: 0.0,
+            },
+        );
+        id
+    }
+
+    /// Records a heartbeat. Returns `(known, generation_current)`.
+    pub fn heartbeat(&mut self, worker: u64, generation: u64, now: Instant) -> (bool, bool) {
+        match self.members.get_mut(&worker) {
+            Some(member) if !member.lost => {
+                member.last_seen = now;
+                (true, self.is_current(generation))
+            }
+            _ => (false, false),
+        }
+    }
+
+    fn is_current(&self, generation: u64) -> bool {
+        self.group
+            .as_ref()
+            .is_some_and(|g| g.generation == generation)
+    }
+
+    /// The worker asks for its next assignment; returns it when ready.
+    pub fn request_assignment(
+        &mut self,
+        worker: u64,
+        after: u64,
+        now: Instant,
+    ) -> Result<Option<Assignment>, Refusal> {
+        let member = self
+            .members
+            .get_mut(&worker)
+            .ok_or(Refusal::UnknownWorker(worker))?;
+        if member.lost {
+            return Err(Refusal::LostWorker(worker));
+        }
+        member.last_seen = now;
+        member.waiting_after = Some(after);
+        if self
+            .assignments
+            .get(&worker)
+            .is_some_and(|a| a.generation > after)
+        {
+            member.waiting_after = None;
+            return Ok(self.assignments.remove(&worker));
+        }
+        if self.finished() {
+            return Ok(Some(assignments::finish(self.generation)));
+        }
+        Ok(None)
+    }
+
+    /// Records a finished step of `phase`; returns whether the generation is still current.
+    pub fn report_step(&mut self, worker: u64, phase: Phase, report: &StepReport) -> bool {
+        let Some(group) = self
+            .group
+            .as_ref()
+            .filter(|g| g.generation == report.generation)
+        else {
+            return false;
+        };
+        let Some(rank) = group.members.iter().position(|&m| m == worker) else {
+            return false;
+        };
+        if let Some(member) = self.members.get_mut(&worker) {
+            member.finished_step = Some((phase, report.step));
+            member.samples_per_s = report.samples_per_s;
+        }
+        let loss = report.loss.unwrap_or_default();
+        self.current_step = report.step + 1;
+        let key = (phase, report.step, report.generation);
+        let steps = &mut self.report.steps;
+        let index = *self.step_index.entry(key).or_insert_with(|| {
+            steps.push(StepRecord::new(phase, report.step, report.generation));
+            steps.len() - 1
+        });
+        let record = &mut self.report.steps[index];
+        record.step_s = record.step_s.max(report.step_s);
+        record.allreduce_s = record.allreduce_s.max(report.allreduce_s);
+        if rank == 0 {
+            record.loss = loss.total;
+            record.learning_rate = loss.learning_rate;
+            self.last_loss = loss.total;
+        }
+        if report.checksum_computed {
+            record
+                .checksums
+                .insert(rank as u32, report.parameter_checksum);
+            let distinct: BTreeSet<u32> = record.checksums.values().copied().collect();
+            if distinct.len() > 1 {
+                let message = format!(
+                    "{phase} step {} generation {}: parameter checksums differ across ranks: {:?}",
+                    report.step, report.generation, record.checksums
+                );
+                tracing::error!("{message}");
+                self.report.checksum_mismatches.push(message);
+            }
+        }
+        true
+    }
+
+    /// Accepts a verified checkpoint commit from the current group; returns whether its phase
+    /// ended with it.
+    pub fn commit(
+        &mut self,
+        worker: u64,
+        commit: Commit,
+        generation: u64,
+    ) -> Result<bool, Refusal> {
+        if !self.is_current(generation) {
+            return Err(Refusal::StaleGeneration(generation));
+        }
+        if !self
+            .group
+            .as_ref()
+            .is_some_and(|g| g.members.contains(&worker))
+        {
+            return Err(Refusal::NotInGroup(worker));
+        }
+        if commit.phase != self.durable.phase {
+            return Err(Refusal::WrongPhase {
+                commit: commit.phase,
+                job: self.durable.phase,
+            });
+        }
+        tracing::info!(phase = %commit.phase, step = commit.step, location = %commit.location, "checkpoint committed");
+        self.report.commits.push(commit.clone());
+        self.durable.last_commit = Some(commit.clone());
+        if commit.step < self.phase_steps(commit.phase) {
+            return Ok(false);
+        }
+        self.group = None;
+        self.lost_at = None;
+        self.durable.phase = self.next_phase(commit.phase);
+        match commit.phase {
+            Phase::Stage1 => {
+                self.durable.stage1_final = Some(commit.location.clone());
+                self.report.stage1_final = Some(commit.location);
+                self.durable.last_commit = None;
+                tracing::info!("stage 1 finished; stage 2 starts from its final weights");
+            }
+            Phase::Stage2 => {
+                self.durable.stage2_final = Some(commit.location);
+                if self.finished() {
+                    tracing::info!("stage 2 finished; the job is done");
+                } else {
+                    tracing::info!("stage 2 finished; one worker evaluates its final weights");
+                }
+            }
+            Phase::Evaluate | Phase::Finished => {
+                self.durable.evaluation = Some(commit.location.clone());
+                self.report.evaluation = Some(commit.location);
+                tracing::info!("evaluation committed; the job is done");
+            }
+        }
+        self.current_step = 0;
+        Ok(true)
+    }
+
+    /// Declares silent workers lost, abandons broken generations and forms new ones. Returns
+    /// true when something changed that waiters should see.
+    pub fn tick(&mut self, now: Instant) -> bool {
+        let mut changed = false;
+        for (id, member) in self.members.iter_mut() {
+            if !member.lost && now.duration_since(member.last_seen) > self.timing.heartbeat_timeout
+            {
+                member.lost = true;
+                tracing::warn!(worker = id, name = %member.name, "worker lost: no heartbeat");
+                changed = true;
+            }
+        }
+        if let Some(group) = &self.group {
+            let lost = group
+                .members
+                .iter()
+                .any(|m| self.members.get(m).is_none_or(|m| m.lost));
+            let last_step = self.phase_steps(group.phase) - 1;
+            let troubled = group.members.iter().any(|m| {
+                self.members.get(m).is_some_and(|member| {
+                    member.waiting_after == Some(group.generation)
+                        && member.finished_step != Some((group.phase, last_step))
+                })
+            });
+            if lost || troubled {
+                tracing::warn!(
+                    generation = group.generation,
+                    lost,
+                    troubled,
+                    "abandoning generation; the group re-forms from the last commit"
+                );
+                self.group = None;
+                self.report.restarts += 1;
+                self.lost_at = Some(now);
+                changed = true;
+            }
+        }
+        if self.group.is_none() && !self.finished() {
+            changed |= self.try_form(now);
+        }
+        changed
+    }
+
+    fn try_form(&mut self, now: Instant) -> bool {
+        let settings = &self.plan.config.workers;
+        let (expected, minimum) = (settings.expected.0 as usize, settings.minimum.0 as usize);
+        let alive = self.members.values().filter(|m| !m.lost).count();
+        let waiting: Vec<u64> = self
+            .members
+            .iter()
+            .filter(|(_, m)| !m.lost && m.waiting_after.is_some())
+            .map(|(&id, _)| id)
+            .collect();
+        let ready = if self.generation == self.first_generation {
+            waiting.len() >= expected
+                || (waiting.len() >= minimum
+                    && self
+                        .first_registration
+                        .is_some_and(|t| now.duration_since(t) >= self.timing.quorum_timeout))
+        } else {
+            let all_in = waiting.len() == alive || waiting.len() >= expected;
+            let grace_over = self
+                .lost_at
+                .is_none_or(|t| now.duration_since(t) >= self.timing.regroup_grace);
+            waiting.len() >= minimum && all_in && (grace_over || waiting.len() >= expected)
+        };
+        if !ready {
+            return false;
+        }
+        let phase = self.durable.phase;
+        let size = if phase.is_training() { expected } else { 1 };
+        let members: Vec<u64> = waiting.into_iter().take(size).collect();
+        self.generation += 1;
+        let peers: Vec<String> = members
+            .iter()
+            .map(|m| self.members[m].address.clone())
+            .collect();
+        tracing::info!(
+            generation = self.generation,
+            %phase,
+            world_size = members.len(),
+            resume = ?self.durable.last_commit.as_ref().map(|c| c.step),
+            "group formed"
+        );
+        for (rank, &worker) in members.iter().enumerate() {
+            let assignment = if phase.is_training() {
+                assignments::train(
+                    &self.plan,
+                    &self.durable,
+                    self.generation,
+                    phase,
+                    rank,
+                    &peers,
+                )
+            } else {
+                match assignments::evaluate(&self.plan, &self.durable, self.generation) {
+                    Some(assignment) => assignment,
+                    None => return false,
+                }
+            };
+            if rank == 0 {
+                let (resume_from, init_weights_from) = match &assignment.work {
+                    Some(proto::v1::assignment::Work::Train(train)) => {
+                        (train.resume_from.clone(), train.init_weights_from.clone())
+                    }
+                    Some(proto::v1::assignment::Work::Evaluate(evaluate)) => {
+                        (String::new(), evaluate.weights.clone())
+                    }
+                    _ => (String::new(), String::new()),
+                };
+                self.report.generations.push(GenerationStart {
+                    generation: self.generation,
+                    phase,
+                    world_size: members.len(),
+                    resume_from,
+                    init_weights_from,
+                });
+            }
+            self.assignments.insert(worker, assignment);
+            if let Some(member) = self.members.get_mut(&worker) {
+                member.finished_step = None;
+            }
+        }
+        self.group = Some(Group {
+            generation: self.generation,
+            members,
+            phase,
+        });
+        true
+    }
+
+    /// A worker said it is leaving (it shuts down between steps): it is treated as lost at
+    /// once, so its group re-forms without waiting for its heartbeats to time out. Returns
+    /// whether the worker was known.
+    pub fn leave(&mut self, worker: u64, reason: &str) -> bool {
+        match self.members.get_mut(&worker) {
+            Some(member) if !member.lost => {
+                member.lost = true;
+                tracing::warn!(worker, name = %member.name, %reason, "worker left");
+                true
+            }
+            _ => false,
+        }
+    }
+}

@@ -1,0 +1,94 @@
+//! What the job state tells operators and the service: status, throughput, curves.
+
+use std::collections::BTreeMap;
+
+use proto::v1::JobStatus;
+use settings::Phase;
+use telemetry::curves::Curve;
+
+use super::JobState;
+
+impl JobState {
+    /// Progress for the `status` command.
+    pub fn status(&self) -> JobStatus {
+        let phase = self.durable.phase;
+        let stage1 = self.plan.stage(Phase::Stage1).steps;
+        let stage2 = self.plan.stage(Phase::Stage2).steps;
+        JobStatus {
+            job_name: self.plan.config.job.0.clone(),
+            phase: proto::convert::phase_to_wire(phase) as i32,
+            group_running: self.group.is_some(),
+            generation: self.generation,
+            workers: self.members.values().filter(|m| !m.lost).count() as u32,
+            step: self.current_step,
+            total_steps: if phase.is_training() {
+                self.plan.stage(phase).steps
+            } else {
+                0
+            },
+            last_commit: self
+                .durable
+                .last_commit
+                .as_ref()
+                .map(|c| c.location.clone())
+                .unwrap_or_default(),
+            last_loss: self.last_loss,
+            restarts: self.report.restarts,
+            job_steps_done: match phase {
+                Phase::Stage1 => self.current_step,
+                Phase::Stage2 => stage1 + self.current_step,
+                Phase::Evaluate | Phase::Finished => stage1 + stage2,
+            },
+            job_steps_total: stage1 + stage2,
+        }
+    }
+
+    /// Samples per second of the running group: its members' last reports summed.
+    pub fn group_throughput(&self) -> f64 {
+        self.group.as_ref().map_or(0.0, |group| {
+            group
+                .members
+                .iter()
+                .filter_map(|m| self.members.get(m))
+                .map(|m| m.samples_per_s)
+                .sum()
+        })
+    }
+
+    /// Whether `worker` is rank 0 of the running group (its reports carry the job's loss).
+    pub fn is_rank0(&self, worker: u64) -> bool {
+        self.group
+            .as_ref()
+            .is_some_and(|g| g.members.first() == Some(&worker))
+    }
+
+    /// Ids of the registered workers whose heartbeats are on time.
+    pub fn live_workers(&self) -> Vec<u64> {
+        self.members
+            .iter()
+            .filter(|(_, m)| !m.lost)
+            .map(|(&id, _)| id)
+            .collect()
+    }
+
+    /// Checksum disagreements so far.
+    pub fn mismatches(&self) -> usize {
+        self.report.checksum_mismatches.len()
+    }
+
+    /// The loss curve of `phase` as recorded by this coordinator: one row per step (the last
+    /// run of a step that was re-run after a restart), with loss and learning rate.
+    pub fn curve(&self, phase: Phase) -> Curve {
+        let mut rows: BTreeMap<u64, Vec<f64>> = BTreeMap::new();
+        for record in self.report.steps.iter().filter(|r| r.phase == phase) {
+            rows.insert(
+                record.step,
+                vec![f64::from(record.loss), record.learning_rate],
+            );
+        }
+        Curve {
+            columns: vec!["loss".into(), "learning_rate".into()],
+            rows: rows.into_iter().collect(),
+        }
+    }
+}

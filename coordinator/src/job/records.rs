@@ -1,0 +1,130 @@
+//! What the job remembers and reports: commits, the durable state written to `job.json`, and
+//! the per-step and per-generation records of the report.
+
+use std::collections::BTreeMap;
+
+use serde::{Deserialize, Serialize};
+use settings::Phase;
+
+/// A checkpoint made durable through the coordinator.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Commit {
+    /// The phase that wrote it (a training stage, or the evaluation's report).
+    #[serde(rename = "stage", with = "settings::phase::as_number")]
+    pub phase: Phase,
+    /// Steps done when written.
+    pub step: u64,
+    /// URI prefix of the checkpoint.
+    pub location: String,
+}
+
+/// What survives a coordinator restart: written to `<checkpoint uri>/job.json` after each commit.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Durable {
+    /// Job name, to refuse another job's state.
+    pub job: String,
+    /// Current phase (written as its number, as job states always were).
+    #[serde(rename = "stage", with = "settings::phase::as_number")]
+    pub phase: Phase,
+    /// Newest commit of the current phase.
+    pub last_commit: Option<Commit>,
+    /// Stage 1's final checkpoint, once there is one.
+    pub stage1_final: Option<String>,
+    /// Stage 2's final checkpoint, once there is one (what the evaluation stage evaluates).
+    #[serde(default)]
+    pub stage2_final: Option<String>,
+    /// Where the evaluation report was committed.
+    #[serde(default)]
+    pub evaluation: Option<String>,
+}
+
+impl Durable {
+    /// A job that has done nothing yet.
+    pub fn new(job: String) -> Self {
+        Self {
+            job,
+            phase: Phase::Stage1,
+            last_commit: None,
+            stage1_final: None,
+            stage2_final: None,
+            evaluation: None,
+        }
+    }
+}
+
+/// One finished step as reported by every rank.
+#[derive(Debug, Clone, Serialize)]
+pub struct StepRecord {
+    /// The training stage.
+    #[serde(rename = "stage", with = "settings::phase::as_number")]
+    pub phase: Phase,
+    /// Step.
+    pub step: u64,
+    /// Generation that ran it (a step re-run after a loss appears twice).
+    pub generation: u64,
+    /// Loss of the global batch (as rank 0 saw it).
+    pub loss: f32,
+    /// Learning rate.
+    pub learning_rate: f64,
+    /// Parameter checksum by rank, where computed.
+    pub checksums: BTreeMap<u32, u32>,
+    /// Wall time of the step: the slowest rank's.
+    pub step_s: f64,
+    /// Time of the step's all-reduce: the slowest rank's.
+    pub allreduce_s: f64,
+}
+
+impl StepRecord {
+    /// A record with nothing reported yet.
+    pub fn new(phase: Phase, step: u64, generation: u64) -> Self {
+        Self {
+            phase,
+            step,
+            generation,
+            loss: 0.0,
+            learning_rate: 0.0,
+            checksums: BTreeMap::new(),
+            step_s: 0.0,
+            allreduce_s: 0.0,
+        }
+    }
+}
+
+/// The job report written when the job ends.
+#[derive(Debug, Clone, Default, Serialize)]
+pub struct Report {
+    /// Job name.
+    pub job: String,
+    /// "finished" or "stopped in ...".
+    pub outcome: String,
+    /// Every commit in order.
+    pub commits: Vec<Commit>,
+    /// Stage 1's final checkpoint.
+    pub stage1_final: Option<String>,
+    /// Where the evaluation report was committed (its `report.json`, `report.md`, PNGs).
+    pub evaluation: Option<String>,
+    /// Every step report.
+    pub steps: Vec<StepRecord>,
+    /// Steps whose ranks disagreed on the checksum.
+    pub checksum_mismatches: Vec<String>,
+    /// Generations abandoned because a worker was lost or failed.
+    pub restarts: u64,
+    /// Every generation: its group and where it started from.
+    pub generations: Vec<GenerationStart>,
+}
+
+/// How one generation started.
+#[derive(Debug, Clone, Serialize)]
+pub struct GenerationStart {
+    /// The generation.
+    pub generation: u64,
+    /// Its phase.
+    #[serde(rename = "stage", with = "settings::phase::as_number")]
+    pub phase: Phase,
+    /// Ranks.
+    pub world_size: usize,
+    /// Committed checkpoint it resumed from (empty: the stage's start).
+    pub resume_from: String,
+    /// Weights it started from (stage 2's start: stage 1's final checkpoint).
+    pub init_weights_from: String,
+}

@@ -1,0 +1,295 @@
+//! Every phase transition of the job, driven through the pure state machine with a hand-held
+//! clock: forming groups, commits within and at the end of each phase, the evaluation, losses
+//! and re-formation, refusals, and resuming from a saved state.
+
+use std::time::{Duration, Instant};
+
+use proto::v1::assignment::Work;
+use proto::v1::{EvaluateAssignment, LossTerms, StepReport, TrainAssignment};
+
+use super::*;
+use crate::config::ClusterConfig;
+
+const BASE: u64 = 1000;
+
+fn plan(evaluate: bool) -> Plan {
+    let yaml = format!(
+        "job: unit
+auth: {{token: t}}
+model: {{preset: tiny}}
+data:
+  generated: {{scenes: 1, trajectories: 1, frames: 6}}
+stage1: {{steps: 4, global_batch: 2, micro_batch: 1, lpips_weight: 0}}
+stage2: {{steps: 2, global_batch: 2, micro_batch: 1, lpips_weight: 0}}
+checkpoint: {{uri: /tmp/unit-ckpt, every: 2}}
+workers: {{expected: 2, minimum: 1, regroup_grace_s: 1}}
+{}",
+        if evaluate { "evaluate: {}\n" } else { "" }
+    );
+    let config = ClusterConfig::from_yaml(&yaml, "unit.yaml").unwrap();
+    tokio::runtime::Builder::new_current_thread()
+        .build()
+        .unwrap()
+        .block_on(Plan::build(config))
+        .unwrap()
+}
+
+fn timing() -> Timing {
+    Timing {
+        heartbeat_timeout: Duration::from_secs(5),
+        quorum_timeout: Duration::from_secs(60),
+        regroup_grace: Duration::from_secs(1),
+    }
+}
+
+struct Run {
+    state: JobState,
+    now: Instant,
+    workers: Vec<u64>,
+}
+
+impl Run {
+    fn new(evaluate: bool, durable: Option<Durable>) -> Self {
+        let now = Instant::now();
+        let mut state = JobState::starting_at(plan(evaluate), timing(), durable, BASE);
+        let workers = (0..2)
+            .map(|i| state.register(format!("w{i}"), format!("127.0.0.1:{}", 7000 + i), now))
+            .collect();
+        Self {
+            state,
+            now,
+            workers,
+        }
+    }
+
+    /// Every live worker asks for work after `after`; the state ticks; returns what each got.
+    fn assign(&mut self, after: u64) -> Vec<Option<Assignment>> {
+        let mut got = Vec::new();
+        for &worker in &self.workers {
+            if let Ok(first) = self.state.request_assignment(worker, after, self.now) {
+                got.push(first);
+            }
+        }
+        self.state.tick(self.now);
+        for (slot, &worker) in got.iter_mut().zip(&self.workers) {
+            if slot.is_none() {
+                *slot = self
+                    .state
+                    .request_assignment(worker, after, self.now)
+                    .unwrap();
+            }
+        }
+        got
+    }
+
+    fn commit(&mut self, worker: u64, phase: Phase, step: u64, generation: u64) -> bool {
+        let commit = Commit {
+            phase,
+            step,
+            location: format!("mem://{phase}/{step}"),
+        };
+        self.state.commit(worker, commit, generation).unwrap()
+    }
+
+    fn step(&mut self, worker: u64, phase: Phase, step: u64, generation: u64) -> bool {
+        let report = StepReport {
+            worker_id: worker,
+            generation,
+            step,
+            loss: Some(LossTerms {
+                total: 0.5,
+                ..LossTerms::default()
+            }),
+            ..StepReport::default()
+        };
+        self.state.report_step(worker, phase, &report)
+    }
+}
+
+fn train(assignment: &Option<Assignment>) -> &TrainAssignment {
+    match assignment.as_ref().and_then(|a| a.work.as_ref()) {
+        Some(Work::Train(train)) => train,
+        other => panic!("expected a training assignment, got {other:?}"),
+    }
+}
+
+fn evaluation(assignment: &Option<Assignment>) -> &EvaluateAssignment {
+    match assignment.as_ref().and_then(|a| a.work.as_ref()) {
+        Some(Work::Evaluate(evaluate)) => evaluate,
+        other => panic!("expected an evaluation, got {other:?}"),
+    }
+}
+
+#[test]
+fn a_job_goes_through_stage1_stage2_evaluation_and_finishes() {
+    let mut run = Run::new(true, None);
+    assert_eq!(run.state.phase(), Phase::Stage1);
+    let first = run.assign(0);
+    let generation = first[0].as_ref().unwrap().generation;
+    assert_eq!(generation, BASE + 1);
+    let (rank0, rank1) = (train(&first[0]), train(&first[1]));
+    assert_eq!((rank0.rank, rank1.rank, rank0.world_size), (0, 1, 2));
+    assert_eq!(rank0.phase, proto::v1::Phase::Stage1 as i32);
+    assert!(rank0.resume_from.is_empty() && rank0.init_weights_from.is_empty());
+    assert_eq!(rank0.checkpoint_prefix, "/tmp/unit-ckpt/stage1");
+    assert_eq!(rank0.total_steps, 4);
+    assert!(rank0.model.is_some() && rank0.train.is_some() && rank0.data.is_some());
+
+    let w0 = run.workers[0];
+    assert!(run.step(w0, Phase::Stage1, 0, generation));
+    assert!(!run.commit(w0, Phase::Stage1, 2, generation), "mid-stage");
+    assert_eq!(run.state.phase(), Phase::Stage1);
+    assert!(run.commit(w0, Phase::Stage1, 4, generation), "stage 1 ends");
+    assert_eq!(run.state.phase(), Phase::Stage2);
+    assert_eq!(
+        run.state.durable().stage1_final.as_deref(),
+        Some("mem://stage1/4")
+    );
+    assert_eq!(run.state.durable().last_commit, None);
+
+    let second = run.assign(generation);
+    let stage2 = train(&second[0]);
+    assert_eq!(stage2.phase, proto::v1::Phase::Stage2 as i32);
+    assert_eq!(stage2.init_weights_from, "mem://stage1/4");
+    let generation = second[0].as_ref().unwrap().generation;
+    assert!(run.commit(w0, Phase::Stage2, 2, generation), "stage 2 ends");
+    assert_eq!(run.state.phase(), Phase::Evaluate);
+
+    let third = run.assign(generation);
+    let evaluated: Vec<_> = third.iter().filter(|a| a.is_some()).collect();
+    assert_eq!(evaluated.len(), 1, "one worker evaluates");
+    let evaluate = evaluation(evaluated[0]);
+    assert_eq!(evaluate.weights, "mem://stage2/2");
+    assert_eq!(evaluate.report_prefix, "/tmp/unit-ckpt/evaluation");
+    let generation = evaluated[0].as_ref().unwrap().generation;
+    let evaluator = run.workers[third.iter().position(|a| a.is_some()).unwrap()];
+    assert!(run.commit(evaluator, Phase::Evaluate, 1, generation));
+    assert!(run.state.finished());
+    assert_eq!(run.state.report().outcome, "finished");
+    assert_eq!(
+        run.state.report().evaluation.as_deref(),
+        Some("mem://evaluate/1")
+    );
+
+    let last = run.assign(generation);
+    assert!(matches!(
+        last[0].as_ref().and_then(|a| a.work.as_ref()),
+        Some(Work::Finish(_))
+    ));
+}
+
+#[test]
+fn without_an_evaluation_stage_2_ends_the_job() {
+    let mut run = Run::new(false, None);
+    let generation = run.assign(0)[0].as_ref().unwrap().generation;
+    let w0 = run.workers[0];
+    run.commit(w0, Phase::Stage1, 4, generation);
+    let generation = run.assign(generation)[0].as_ref().unwrap().generation;
+    assert!(run.commit(w0, Phase::Stage2, 2, generation));
+    assert_eq!(run.state.phase(), Phase::Finished);
+}
+
+#[test]
+fn a_lost_worker_ends_the_generation_and_the_survivor_resumes_from_the_last_commit() {
+    let mut run = Run::new(false, None);
+    let generation = run.assign(0)[0].as_ref().unwrap().generation;
+    let (w0, w1) = (run.workers[0], run.workers[1]);
+    run.commit(w0, Phase::Stage1, 2, generation);
+    run.now += Duration::from_secs(3);
+    run.state.heartbeat(w0, generation, run.now);
+    run.now += Duration::from_secs(3);
+    run.state.heartbeat(w0, generation, run.now);
+    assert!(run.state.tick(run.now), "w1 is silent past the timeout");
+    assert_eq!(run.state.report().restarts, 1);
+    assert!(
+        !run.step(w0, Phase::Stage1, 2, generation),
+        "the old generation is over"
+    );
+    assert_eq!(
+        run.state.request_assignment(w1, generation, run.now),
+        Err(Refusal::LostWorker(w1))
+    );
+    run.workers = vec![w0];
+    assert!(run.assign(generation)[0].is_none(), "the grace period runs");
+    run.now += Duration::from_secs(2);
+    let again = run.assign(generation);
+    let resumed = train(&again[0]);
+    assert_eq!(resumed.world_size, 1);
+    assert_eq!(resumed.resume_from, "mem://stage1/2");
+}
+
+#[test]
+fn stale_foreign_and_wrong_phase_commits_are_refused() {
+    let mut run = Run::new(false, None);
+    let generation = run.assign(0)[0].as_ref().unwrap().generation;
+    let w0 = run.workers[0];
+    let commit = |phase| Commit {
+        phase,
+        step: 2,
+        location: "mem://x".into(),
+    };
+    assert_eq!(
+        run.state.commit(w0, commit(Phase::Stage1), generation - 1),
+        Err(Refusal::StaleGeneration(generation - 1))
+    );
+    assert_eq!(
+        run.state.commit(999, commit(Phase::Stage1), generation),
+        Err(Refusal::NotInGroup(999))
+    );
+    assert_eq!(
+        run.state.commit(w0, commit(Phase::Stage2), generation),
+        Err(Refusal::WrongPhase {
+            commit: Phase::Stage2,
+            job: Phase::Stage1
+        })
+    );
+    assert_eq!(
+        run.state.request_assignment(999, 0, run.now),
+        Err(Refusal::UnknownWorker(999))
+    );
+    assert!(run.state.report().commits.is_empty());
+}
+
+#[test]
+fn a_saved_state_resumes_where_it_was_and_an_old_evaluation_state_counts_as_finished() {
+    let mut saved = Durable::new("unit".into());
+    saved.phase = Phase::Stage2;
+    saved.stage1_final = Some("mem://stage1/4".into());
+    saved.last_commit = Some(Commit {
+        phase: Phase::Stage2,
+        step: 1,
+        location: "mem://stage2/1".into(),
+    });
+    let mut run = Run::new(false, Some(saved));
+    let resumed = run.assign(0);
+    let stage2 = train(&resumed[0]);
+    assert_eq!(stage2.resume_from, "mem://stage2/1");
+    assert!(stage2.init_weights_from.is_empty());
+
+    let old: Durable = serde_json::from_str(
+        r#"{"job": "unit", "stage": 3, "last_commit": null, "stage1_final": "a"}"#,
+    )
+    .unwrap();
+    assert_eq!(old.phase, Phase::Evaluate);
+    let run = Run::new(true, Some(old));
+    assert!(run.state.finished(), "no stage 2 result to evaluate");
+}
+
+#[test]
+fn checksum_disagreements_are_recorded_once_per_step() {
+    let mut run = Run::new(false, None);
+    let generation = run.assign(0)[0].as_ref().unwrap().generation;
+    for (worker, checksum) in [(run.workers[0], 1), (run.workers[1], 2)] {
+        let report = StepReport {
+            worker_id: worker,
+            generation,
+            step: 0,
+            parameter_checksum: checksum,
+            checksum_computed: true,
+            ..StepReport::default()
+        };
+        run.state.report_step(worker, Phase::Stage1, &report);
+    }
+    assert_eq!(run.state.mismatches(), 1);
+    assert_eq!(run.state.report().steps.len(), 1);
+}

@@ -1,0 +1,246 @@
+//! The Coordinator gRPC service over the job state, and the loop that runs a job to its end.
+//! The RPC handlers are in `rpc`, the checkpoint-store side (job state, commit verification)
+//! in `store`.
+
+use std::net::SocketAddr;
+use std::path::Path;
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use data::store::{DataRoot, StoreError};
+use proto::v1::coordinator_server::CoordinatorServer;
+use settings::Phase;
+use telemetry::Registry;
+use tokio::sync::{Mutex, Notify};
+use tonic::service::interceptor::InterceptedService;
+
+use crate::job::{JobState, Report, Timing};
+use crate::metrics;
+use crate::plan::Plan;
+
+mod rpc;
+pub mod store;
+
+/// The service: shared job state plus a signal for waiters.
+#[derive(Clone)]
+pub struct CoordinatorService {
+    state: Arc<Mutex<JobState>>,
+    changed: Arc<Notify>,
+    checkpoints: DataRoot,
+    heartbeat_interval_s: f64,
+    metrics: Arc<Registry>,
+}
+
+/// Why a job could not run.
+#[derive(Debug, thiserror::Error)]
+pub enum ServeError {
+    /// The listen address is not `host:port`.
+    #[error("listen address `{0}` is not host:port")]
+    Address(String),
+    /// The checkpoint store could not be opened.
+    #[error("checkpoint store")]
+    OpenStore(#[source] StoreError),
+    /// `job.json` exists but cannot be read: starting over would orphan committed work.
+    #[error(
+        "{uri}/job.json could not be read; the job does not start over it (fix the store and rerun)"
+    )]
+    ReadState {
+        /// The checkpoint URI.
+        uri: String,
+        /// What failed.
+        #[source]
+        source: StoreError,
+    },
+    /// `job.json` is not a job state.
+    #[error("{uri}/job.json is not a job state")]
+    CorruptState {
+        /// The checkpoint URI.
+        uri: String,
+        /// The parser's error.
+        #[source]
+        source: serde_json::Error,
+    },
+    /// `job.json` belongs to another job.
+    #[error(
+        "{uri}/job.json belongs to job `{found}`, not `{expected}`: use another checkpoint.uri"
+    )]
+    OtherJob {
+        /// The checkpoint URI.
+        uri: String,
+        /// The job it belongs to.
+        found: String,
+        /// This job.
+        expected: String,
+    },
+    /// The server failed.
+    #[error("gRPC server")]
+    Transport(#[source] tonic::transport::Error),
+    /// The server task ended abnormally.
+    #[error("gRPC server task")]
+    Task(#[source] tokio::task::JoinError),
+    /// The TLS files in the YAML could not be used.
+    #[error("tls: certificate {cert} with key {key}")]
+    Tls {
+        /// Certificate file.
+        cert: String,
+        /// Key file.
+        key: String,
+        /// What was wrong.
+        #[source]
+        source: Box<dyn std::error::Error + Send + Sync>,
+    },
+}
+
+impl CoordinatorService {
+    /// A service over `plan`; reads the checkpoint store's `job.json` so a restarted
+    /// coordinator continues where the last one committed.
+    pub async fn new(plan: Plan) -> Result<Self, ServeError> {
+        let config = &plan.config;
+        let checkpoints =
+            DataRoot::create(&config.checkpoint.uri.0).map_err(ServeError::OpenStore)?;
+        let durable = store::read_durable(&checkpoints, &config.job.0).await?;
+        if let Some(durable) = &durable {
+            tracing::info!(phase = %durable.phase, last_commit = ?durable.last_commit, "resuming the job from its checkpoint store");
+        }
+        let workers = &config.workers;
+        let timing = Timing {
+            heartbeat_timeout: Duration::from_secs_f64(workers.heartbeat_timeout_s.0),
+            quorum_timeout: Duration::from_secs_f64(workers.quorum_timeout_s.0),
+            regroup_grace: Duration::from_secs_f64(workers.regroup_grace_s.0),
+        };
+        let heartbeat_interval_s = workers.heartbeat_interval_s.0;
+        Ok(Self {
+            state: Arc::new(Mutex::new(JobState::new(plan, timing, durable))),
+            changed: Arc::new(Notify::new()),
+            checkpoints,
+            heartbeat_interval_s,
+            metrics: Arc::new(Registry::new()),
+        })
+    }
+
+    /// The series this service publishes, for the `/metrics` endpoint.
+    pub fn metrics(&self) -> Arc<Registry> {
+        Arc::clone(&self.metrics)
+    }
+
+    fn publish(&self, state: &JobState) {
+        let live: Vec<String> = state.live_workers().iter().map(u64::to_string).collect();
+        metrics::forget_departed(&self.metrics, &live);
+        metrics::record_status(
+            &self.metrics,
+            &state.status(),
+            state.phase(),
+            state.group_throughput(),
+            state.mismatches(),
+        );
+    }
+
+    /// Writes `curves/stage{N}.csv` and `.png` under the checkpoint URI. A failure is logged,
+    /// not fatal: the curves are a convenience, the report holds every step.
+    async fn write_curves(&self, phase: Phase) {
+        let curve = self.state.lock().await.curve(phase);
+        let csv = format!("curves/{phase}.csv");
+        let png = format!("curves/{phase}.png");
+        let written: Result<(), Box<dyn std::error::Error>> = async {
+            self.checkpoints
+                .write(&csv, curve.to_csv().into_bytes())
+                .await?;
+            let image = curve.to_png()?;
+            self.checkpoints.write(&png, image).await?;
+            Ok(())
+        }
+        .await;
+        match written {
+            Ok(()) => {
+                tracing::info!(%phase, steps = curve.rows.len(), uri = %self.checkpoints.uri(), "loss curves written under curves/")
+            }
+            Err(error) => {
+                tracing::warn!(%phase, error = %store::chain(error.as_ref()), "loss curves not written")
+            }
+        }
+    }
+
+    /// Runs the job: serves RPCs, ticks the state machine, and returns the report once both
+    /// stages are done (after giving workers a moment to hear so), or when `shutdown` fires.
+    pub async fn run(
+        self,
+        token: &str,
+        shutdown: impl std::future::Future<Output = ()> + Send + 'static,
+    ) -> Result<Report, ServeError> {
+        let listen = self.state.lock().await.plan().config.listen.0.clone();
+        let address: SocketAddr = tokio::net::lookup_host(&listen)
+            .await
+            .ok()
+            .and_then(|mut a| a.next())
+            .ok_or_else(|| ServeError::Address(listen.clone()))?;
+        let server = InterceptedService::new(
+            CoordinatorServer::new(self.clone())
+                .max_decoding_message_size(proto::MAX_MESSAGE_BYTES)
+                .max_encoding_message_size(proto::MAX_MESSAGE_BYTES),
+            proto::RequireToken::new(token),
+        );
+        let tls = self.state.lock().await.plan().config.tls.clone();
+        let mut builder = tonic::transport::Server::builder();
+        if let Some(tls) = tls {
+            let failed = |source: Box<dyn std::error::Error + Send + Sync>| ServeError::Tls {
+                cert: tls.cert.0.clone(),
+                key: tls.key.0.clone(),
+                source,
+            };
+            let settings = proto::tls::server_config(Path::new(&tls.cert.0), Path::new(&tls.key.0))
+                .map_err(|e| failed(e.into()))?;
+            builder = builder.tls_config(settings).map_err(|e| failed(e.into()))?;
+        }
+        let finished = Arc::new(Notify::new());
+        let stop_server = finished.clone();
+        let serve = tokio::spawn(
+            builder
+                .add_service(server)
+                .serve_with_shutdown(address, async move { stop_server.notified().await }),
+        );
+        tracing::info!(%address, "coordinator listening");
+        let ticker = {
+            let service = self.clone();
+            async move {
+                let mut phase = service.state.lock().await.phase();
+                loop {
+                    tokio::time::sleep(Duration::from_millis(50)).await;
+                    let (changed, done, now_phase) = {
+                        let mut state = service.state.lock().await;
+                        let changed = state.tick(Instant::now());
+                        service.publish(&state);
+                        (changed, state.finished(), state.phase())
+                    };
+                    if changed {
+                        service.changed.notify_waiters();
+                    }
+                    for stage in [Phase::Stage1, Phase::Stage2] {
+                        if phase <= stage && stage < now_phase {
+                            service.write_curves(stage).await;
+                        }
+                    }
+                    phase = phase.max(now_phase);
+                    if done {
+                        // Let every worker collect its FINISH before the server goes.
+                        tokio::time::sleep(Duration::from_secs_f64(
+                            (service.heartbeat_interval_s * 4.0).max(1.0),
+                        ))
+                        .await;
+                        return;
+                    }
+                }
+            }
+        };
+        tokio::select! {
+            () = ticker => {}
+            () = shutdown => tracing::warn!("shutdown requested: the job stops; rerun to resume from its last commit"),
+        }
+        finished.notify_one();
+        serve
+            .await
+            .map_err(ServeError::Task)?
+            .map_err(ServeError::Transport)?;
+        let report = self.state.lock().await.report();
+        Ok(report)
+    }
+}

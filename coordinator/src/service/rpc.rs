@@ -1,0 +1,282 @@
+//! The Coordinator RPCs: each one checks its request, asks the job state, and maps a refusal
+//! to the gRPC status a worker can act on (not found: register again; failed precondition:
+//! wrong build or config; invalid argument: a malformed request).
+
+use std::time::{Duration, Instant};
+
+use proto::convert::{ConvertError, device_from_wire, phase_from_wire};
+use proto::v1::coordinator_server::Coordinator;
+use proto::v1::{
+    Assignment, AwaitAssignmentRequest, CheckpointCommit, CommitAck, HeartbeatReply,
+    HeartbeatRequest, JobStatus, LeaveReply, LeaveRequest, RegisterReply, RegisterRequest,
+    StatusRequest, StepAck, StepReport,
+};
+use settings::XFactorConfig;
+use tonic::{Request, Response, Status};
+use tracing::Instrument;
+
+use super::CoordinatorService;
+use super::store::{DURABLE_OBJECT, chain, verify};
+use crate::job::{Commit, Refusal};
+use crate::metrics;
+
+/// A request whose typed fields do not convert.
+fn malformed(error: ConvertError) -> Status {
+    Status::invalid_argument(error.to_string())
+}
+
+/// The status a worker acts on for each refusal.
+fn refused(refusal: Refusal) -> Status {
+    match refusal {
+        Refusal::UnknownWorker(_) | Refusal::LostWorker(_) => {
+            Status::not_found(refusal.to_string())
+        }
+        Refusal::StaleGeneration(_) | Refusal::NotInGroup(_) | Refusal::WrongPhase { .. } => {
+            Status::failed_precondition(refusal.to_string())
+        }
+    }
+}
+
+#[tonic::async_trait]
+impl Coordinator for CoordinatorService {
+    async fn register(
+        &self,
+        request: Request<RegisterRequest>,
+    ) -> Result<Response<RegisterReply>, Status> {
+        let request = request.into_inner();
+        let span = tracing::info_span!("rpc_register", worker = %request.worker_name);
+        self.admit(request).instrument(span).await
+    }
+
+    async fn await_assignment(
+        &self,
+        request: Request<AwaitAssignmentRequest>,
+    ) -> Result<Response<Assignment>, Status> {
+        let request = request.into_inner();
+        let span = tracing::debug_span!("rpc_await_assignment", worker = request.worker_id);
+        self.assign(request).instrument(span).await
+    }
+
+    async fn heartbeat(
+        &self,
+        request: Request<HeartbeatRequest>,
+    ) -> Result<Response<HeartbeatReply>, Status> {
+        let request = request.into_inner();
+        let span = tracing::trace_span!("rpc_heartbeat", worker = request.worker_id);
+        async {
+            let (known, generation_current) = self.state.lock().await.heartbeat(
+                request.worker_id,
+                request.generation,
+                Instant::now(),
+            );
+            self.metrics.add(&metrics::HEARTBEATS, &[], 1.0);
+            Ok(Response::new(HeartbeatReply {
+                generation_current,
+                known,
+            }))
+        }
+        .instrument(span)
+        .await
+    }
+
+    async fn report_step(&self, request: Request<StepReport>) -> Result<Response<StepAck>, Status> {
+        let report = request.into_inner();
+        let span = tracing::debug_span!(
+            "rpc_report_step",
+            worker = report.worker_id,
+            step = report.step
+        );
+        async {
+            let phase = phase_from_wire(report.phase, "step.phase").map_err(malformed)?;
+            let mut state = self.state.lock().await;
+            state.heartbeat(report.worker_id, report.generation, Instant::now());
+            let generation_current = state.report_step(report.worker_id, phase, &report);
+            if generation_current {
+                let rank0 = state.is_rank0(report.worker_id);
+                metrics::record_step(&self.metrics, &report, rank0);
+            }
+            Ok(Response::new(StepAck { generation_current }))
+        }
+        .instrument(span)
+        .await
+    }
+
+    async fn commit_checkpoint(
+        &self,
+        request: Request<CheckpointCommit>,
+    ) -> Result<Response<CommitAck>, Status> {
+        let commit = request.into_inner();
+        let span = tracing::info_span!("rpc_commit", phase = commit.phase, step = commit.step);
+        self.record_commit(commit).instrument(span).await
+    }
+
+    async fn status(
+        &self,
+        _request: Request<StatusRequest>,
+    ) -> Result<Response<JobStatus>, Status> {
+        let status = async { self.state.lock().await.status() }
+            .instrument(tracing::debug_span!("rpc_status"))
+            .await;
+        Ok(Response::new(status))
+    }
+
+    async fn leave(&self, request: Request<LeaveRequest>) -> Result<Response<LeaveReply>, Status> {
+        let request = request.into_inner();
+        let span = tracing::info_span!("rpc_leave", worker = request.worker_id);
+        async {
+            let known = {
+                let mut state = self.state.lock().await;
+                let known = state.leave(request.worker_id, &request.reason);
+                if known && state.tick(Instant::now()) {
+                    self.changed.notify_waiters();
+                }
+                known
+            };
+            if known {
+                Ok(Response::new(LeaveReply {}))
+            } else {
+                Err(Status::not_found(format!(
+                    "worker {} is not a member of this job",
+                    request.worker_id
+                )))
+            }
+        }
+        .instrument(span)
+        .await
+    }
+}
+
+impl CoordinatorService {
+    async fn admit(&self, request: RegisterRequest) -> Result<Response<RegisterReply>, Status> {
+        if request.protocol_version != proto::PROTOCOL_VERSION {
+            return Err(Status::failed_precondition(format!(
+                "protocol version {} refused: this coordinator speaks version {}; run matching builds",
+                request.protocol_version,
+                proto::PROTOCOL_VERSION
+            )));
+        }
+        if let Some(device) = request.device {
+            device_from_wire(device, "register.device").map_err(malformed)?;
+        }
+        if request.model_config_version != XFactorConfig::SCHEMA_VERSION {
+            return Err(Status::failed_precondition(format!(
+                "model-config version {} refused: this coordinator uses version {}",
+                request.model_config_version,
+                XFactorConfig::SCHEMA_VERSION
+            )));
+        }
+        let mut state = self.state.lock().await;
+        if let Some(expected) = &request.expected_model {
+            let differences = differing_fields(&state.plan().model, &XFactorConfig::from(expected));
+            if !differences.is_empty() {
+                return Err(Status::failed_precondition(format!(
+                    "model config differs from the job's: {}",
+                    differences.join(", ")
+                )));
+            }
+        }
+        if request.collective_address.is_empty() {
+            return Err(Status::invalid_argument("collective_address is empty"));
+        }
+        let id = state.register(
+            request.worker_name,
+            request.collective_address,
+            Instant::now(),
+        );
+        let job_name = state.plan().config.job.0.clone();
+        drop(state);
+        self.changed.notify_waiters();
+        Ok(Response::new(RegisterReply {
+            worker_id: id,
+            job_name,
+            heartbeat_interval_s: self.heartbeat_interval_s,
+        }))
+    }
+
+    async fn assign(
+        &self,
+        request: AwaitAssignmentRequest,
+    ) -> Result<Response<Assignment>, Status> {
+        loop {
+            let notified = self.changed.notified();
+            {
+                let mut state = self.state.lock().await;
+                match state.request_assignment(
+                    request.worker_id,
+                    request.after_generation,
+                    Instant::now(),
+                ) {
+                    Err(refusal) => return Err(refused(refusal)),
+                    Ok(Some(assignment)) => return Ok(Response::new(assignment)),
+                    Ok(None) => {}
+                }
+                if state.tick(Instant::now()) {
+                    self.changed.notify_waiters();
+                }
+            }
+            let _ = tokio::time::timeout(Duration::from_millis(200), notified).await;
+        }
+    }
+
+    async fn record_commit(&self, commit: CheckpointCommit) -> Result<Response<CommitAck>, Status> {
+        let refuse = |reason: String| {
+            tracing::warn!(%reason, "commit refused");
+            Ok(Response::new(CommitAck {
+                accepted: false,
+                reason,
+            }))
+        };
+        let phase = phase_from_wire(commit.phase, "commit.phase").map_err(malformed)?;
+        if let Err(check) = verify(&commit.location).await {
+            return refuse(chain(&check));
+        }
+        let durable = {
+            let mut state = self.state.lock().await;
+            let accepted = state.commit(
+                commit.worker_id,
+                Commit {
+                    phase,
+                    step: commit.step,
+                    location: commit.location.clone(),
+                },
+                commit.generation,
+            );
+            if let Err(refusal) = accepted {
+                return refuse(refusal.to_string());
+            }
+            self.metrics.add(&metrics::COMMITS, &[], 1.0);
+            state.durable().clone()
+        };
+        let json =
+            serde_json::to_vec_pretty(&durable).map_err(|e| Status::internal(e.to_string()))?;
+        self.checkpoints
+            .write(DURABLE_OBJECT, json)
+            .await
+            .map_err(|e| {
+                Status::unavailable(format!("recording the commit failed: {}", chain(&e)))
+            })?;
+        self.changed.notify_waiters();
+        Ok(Response::new(CommitAck {
+            accepted: true,
+            reason: String::new(),
+        }))
+    }
+}
+
+/// `key: job vs worker` for every field whose value differs.
+fn differing_fields(job: &XFactorConfig, worker: &XFactorConfig) -> Vec<String> {
+    let (Ok(serde_json::Value::Object(job)), Ok(serde_json::Value::Object(worker))) =
+        (serde_json::to_value(job), serde_json::to_value(worker))
+    else {
+        return vec![format!("job {job:?} vs worker {worker:?}")];
+    };
+    job.iter()
+        .filter(|(key, value)| worker.get(*key) != Some(value))
+        .map(|(key, value)| {
+            let theirs = worker
+                .get(key)
+                .map_or("(absent)".to_string(), |v| v.to_string());
+            format!("{key}: job {value} vs worker {theirs}")
+        })
+        .collect()
+}

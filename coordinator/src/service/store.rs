@@ -1,0 +1,130 @@
+//! The coordinator's side of the checkpoint store: the job state (`job.json`), verification of
+//! committed checkpoints against their manifest, and the loss curves.
+
+use data::store::{DataRoot, StoreError};
+use settings::commit::{CommitManifest, MANIFEST_NAME};
+
+use super::ServeError;
+use crate::job::Durable;
+
+/// Name of the job-state object under the checkpoint URI.
+pub const DURABLE_OBJECT: &str = "job.json";
+
+/// Reads the job state a previous coordinator left. Only a missing `job.json` means a new
+/// job: a store that cannot be read, or a file that is not a job state, stops the start, so a
+/// committed result is never orphaned by starting over.
+pub async fn read_durable(
+    checkpoints: &DataRoot,
+    job: &str,
+) -> Result<Option<Durable>, ServeError> {
+    let uri = checkpoints.uri().to_string();
+    let bytes = match checkpoints.read(DURABLE_OBJECT).await {
+        Ok(bytes) => bytes,
+        Err(StoreError::NotFound { .. }) => return Ok(None),
+        Err(source) => return Err(ServeError::ReadState { uri, source }),
+    };
+    let durable: Durable =
+        serde_json::from_slice(&bytes).map_err(|source| ServeError::CorruptState {
+            uri: uri.clone(),
+            source,
+        })?;
+    if durable.job != job {
+        return Err(ServeError::OtherJob {
+            uri,
+            found: durable.job,
+            expected: job.to_string(),
+        });
+    }
+    Ok(Some(durable))
+}
+
+/// Why a commit was refused after checking the store.
+#[derive(Debug, thiserror::Error)]
+pub enum CommitCheck {
+    /// The location or its manifest could not be read.
+    #[error("{location}: manifest unreadable")]
+    Unreadable {
+        /// The commit's location.
+        location: String,
+        /// What failed.
+        #[source]
+        source: StoreError,
+    },
+    /// The manifest is not one.
+    #[error("{location}/{MANIFEST_NAME} is not a commit manifest")]
+    Malformed {
+        /// The commit's location.
+        location: String,
+        /// The parser's error.
+        #[source]
+        source: serde_json::Error,
+    },
+    /// A listed file is absent.
+    #[error("{location}/{name} is missing")]
+    Missing {
+        /// The commit's location.
+        location: String,
+        /// The file.
+        name: String,
+    },
+    /// A listed file has another size.
+    #[error("{location}/{name} holds {found} bytes, {MANIFEST_NAME} says {expected}")]
+    Size {
+        /// The commit's location.
+        location: String,
+        /// The file.
+        name: String,
+        /// Its size in the store.
+        found: u64,
+        /// Its size in the manifest.
+        expected: u64,
+    },
+}
+
+/// Checks that every file a checkpoint's manifest lists exists with its size.
+pub async fn verify(location: &str) -> Result<CommitManifest, CommitCheck> {
+    let unreadable = |source| CommitCheck::Unreadable {
+        location: location.to_string(),
+        source,
+    };
+    let root = DataRoot::open(location).map_err(unreadable)?;
+    let bytes = root.read(MANIFEST_NAME).await.map_err(unreadable)?;
+    let manifest: CommitManifest =
+        serde_json::from_slice(&bytes).map_err(|source| CommitCheck::Malformed {
+            location: location.to_string(),
+            source,
+        })?;
+    let listed = root.list().await.map_err(unreadable)?;
+    for file in &manifest.files {
+        match listed.iter().find(|l| l.path == file.name) {
+            Some(found) if found.size == file.bytes => {}
+            Some(found) => {
+                return Err(CommitCheck::Size {
+                    location: location.to_string(),
+                    name: file.name.clone(),
+                    found: found.size,
+                    expected: file.bytes,
+                });
+            }
+            None => {
+                return Err(CommitCheck::Missing {
+                    location: location.to_string(),
+                    name: file.name.clone(),
+                });
+            }
+        }
+    }
+    Ok(manifest)
+}
+
+/// `error` and every cause below it, joined, for messages that travel as one string.
+pub fn chain(error: &dyn std::error::Error) -> String {
+    let mut text = error.to_string();
+    let mut cause = error.source();
+    while let Some(next) = cause {
+        text.push_str(": ");
+        text.push_str(&next.to_string());
+        cause = next.source();
+    }
+    text
+}

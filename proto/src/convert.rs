@@ -1,0 +1,607 @@
+//! The typed messages of the contract to and from the `settings` types both sides compute with.
+//!
+//! Writing is total; reading fails with the field at fault when a required sub-message is
+//! absent or an enum holds a value this build does not know (a peer of another version).
+
+use settings::data::{
+    DataSource, DataSpec, DatasetKind, DatasetSampling, ListingFingerprint, SamplerConfig,
+    StoredDataset,
+};
+use settings::evaluation::{EvaluationSpec, OracleSpec, ProbeSpec};
+use settings::objective::{AugmentConfig, Stage1Config, Stage2Config};
+use settings::optim::{AdamWConfig, Schedule};
+use settings::train::{StageObjective, TrainConfig};
+use settings::{DeviceChoice, Phase, XFactorConfig};
+
+use crate::v1;
+
+/// A message that cannot become its settings type.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum ConvertError {
+    /// A required sub-message or oneof is absent.
+    #[error("`{0}` is missing from the message")]
+    Missing(&'static str),
+    /// An enum field holds a value this build does not know.
+    #[error("`{field}` holds {value}, which this build does not know (a peer of another version?)")]
+    Unknown {
+        /// The field.
+        field: &'static str,
+        /// The raw value.
+        value: i32,
+    },
+}
+
+fn required<T>(value: Option<T>, field: &'static str) -> Result<T, ConvertError> {
+    value.ok_or(ConvertError::Missing(field))
+}
+
+/// Sizes travel as `u64`; this side's `usize` is at least that wide on every supported host.
+fn size(value: u64) -> usize {
+    value as usize
+}
+
+/// The wire form of a phase.
+pub fn phase_to_wire(phase: Phase) -> v1::Phase {
+    match phase {
+        Phase::Stage1 => v1::Phase::Stage1,
+        Phase::Stage2 => v1::Phase::Stage2,
+        Phase::Evaluate => v1::Phase::Evaluate,
+        Phase::Finished => v1::Phase::Finished,
+    }
+}
+
+/// A phase from its wire value; `field` names it in the error.
+pub fn phase_from_wire(value: i32, field: &'static str) -> Result<Phase, ConvertError> {
+    match v1::Phase::try_from(value) {
+        Ok(v1::Phase::Stage1) => Ok(Phase::Stage1),
+        Ok(v1::Phase::Stage2) => Ok(Phase::Stage2),
+        Ok(v1::Phase::Evaluate) => Ok(Phase::Evaluate),
+        Ok(v1::Phase::Finished) => Ok(Phase::Finished),
+        Ok(v1::Phase::Unspecified) | Err(_) => Err(ConvertError::Unknown { field, value }),
+    }
+}
+
+/// What a job is doing, for status lines: its phase, and whether its group is still forming.
+pub fn status_label(status: &v1::JobStatus) -> String {
+    let phase = phase_from_wire(status.phase, "status.phase");
+    match phase {
+        Ok(Phase::Finished) => "finished".into(),
+        Ok(phase) if status.group_running => phase.name().into(),
+        Ok(Phase::Evaluate) => "evaluate (waiting for a worker)".into(),
+        Ok(phase) => format!("{phase} (waiting for workers)"),
+        Err(_) => format!("unknown phase {}", status.phase),
+    }
+}
+
+/// The wire form of a device choice.
+pub fn device_to_wire(device: DeviceChoice) -> v1::Device {
+    match device {
+        DeviceChoice::Auto => v1::Device::Auto,
+        DeviceChoice::Cpu => v1::Device::Cpu,
+        DeviceChoice::Wgpu => v1::Device::Wgpu,
+    }
+}
+
+/// A device choice from its wire value.
+pub fn device_from_wire(value: i32, field: &'static str) -> Result<DeviceChoice, ConvertError> {
+    match v1::Device::try_from(value) {
+        Ok(v1::Device::Auto) => Ok(DeviceChoice::Auto),
+        Ok(v1::Device::Cpu) => Ok(DeviceChoice::Cpu),
+        Ok(v1::Device::Wgpu) => Ok(DeviceChoice::Wgpu),
+        Err(_) => Err(ConvertError::Unknown { field, value }),
+    }
+}
+
+fn kind_to_wire(kind: DatasetKind) -> i32 {
+    (match kind {
+        DatasetKind::Re10k => v1::DatasetKind::Re10k,
+        DatasetKind::Dl3dv => v1::DatasetKind::Dl3dv,
+        DatasetKind::Mvimgnet => v1::DatasetKind::Mvimgnet,
+        DatasetKind::Co3dv2 => v1::DatasetKind::Co3dv2,
+    }) as i32
+}
+
+fn kind_from_wire(value: i32, field: &'static str) -> Result<DatasetKind, ConvertError> {
+    match v1::DatasetKind::try_from(value) {
+        Ok(v1::DatasetKind::Re10k) => Ok(DatasetKind::Re10k),
+        Ok(v1::DatasetKind::Dl3dv) => Ok(DatasetKind::Dl3dv),
+        Ok(v1::DatasetKind::Mvimgnet) => Ok(DatasetKind::Mvimgnet),
+        Ok(v1::DatasetKind::Co3dv2) => Ok(DatasetKind::Co3dv2),
+        Ok(v1::DatasetKind::Unspecified) | Err(_) => Err(ConvertError::Unknown { field, value }),
+    }
+}
+
+impl From<&XFactorConfig> for v1::ModelConfig {
+    fn from(c: &XFactorConfig) -> Self {
+        Self {
+            image_size: c.image_size as u64,
+            patch_size: c.patch_size as u64,
+            width: c.width as u64,
+            num_heads: c.num_heads as u64,
+            pose_layers: c.pose_layers as u64,
+            render_layers: c.render_layers as u64,
+            pose_dim: c.pose_dim as u64,
+            global_tokens: c.global_tokens as u64,
+            round_qkv_bf16: c.round_qkv_bf16,
+        }
+    }
+}
+
+impl From<&v1::ModelConfig> for XFactorConfig {
+    fn from(m: &v1::ModelConfig) -> Self {
+        Self {
+            image_size: size(m.image_size),
+            patch_size: size(m.patch_size),
+            width: size(m.width),
+            num_heads: size(m.num_heads),
+            pose_layers: size(m.pose_layers),
+            render_layers: size(m.render_layers),
+            pose_dim: size(m.pose_dim),
+            global_tokens: size(m.global_tokens),
+            round_qkv_bf16: m.round_qkv_bf16,
+        }
+    }
+}
+
+fn augment_to_wire(a: &AugmentConfig) -> v1::AugmentSettings {
+    v1::AugmentSettings {
+        jitter_probability: a.jitter_probability,
+        brightness: a.brightness,
+        contrast: a.contrast,
+        saturation: a.saturation,
+        hue: a.hue,
+        blur_probability: a.blur_probability,
+        blur_sigma_min: a.blur_sigma_min,
+        blur_sigma_max: a.blur_sigma_max,
+        blur_kernel: a.blur_kernel as u64,
+    }
+}
+
+fn augment_from_wire(a: &v1::AugmentSettings) -> AugmentConfig {
+    AugmentConfig {
+        jitter_probability: a.jitter_probability,
+        brightness: a.brightness,
+        contrast: a.contrast,
+        saturation: a.saturation,
+        hue: a.hue,
+        blur_probability: a.blur_probability,
+        blur_sigma_min: a.blur_sigma_min,
+        blur_sigma_max: a.blur_sigma_max,
+        blur_kernel: size(a.blur_kernel),
+    }
+}
+
+fn common_to_wire(
+    self_decode_probability: f64,
+    unmasked_probability: f64,
+    lpips_weight: f64,
+    augment: &AugmentConfig,
+) -> Option<v1::ObjectiveSettings> {
+    Some(v1::ObjectiveSettings {
+        self_decode_probability,
+        unmasked_probability,
+        lpips_weight,
+        augment: Some(augment_to_wire(augment)),
+    })
+}
+
+fn objective_to_wire(objective: &StageObjective) -> v1::train_settings::Objective {
+    match objective {
+        StageObjective::Stage1(o) => v1::train_settings::Objective::Stage1(v1::Stage1Objective {
+            common: common_to_wire(
+                o.self_decode_probability,
+                o.unmasked_probability,
+                o.lpips_weight,
+                &o.augment,
+            ),
+        }),
+        StageObjective::Stage2(o) => v1::train_settings::Objective::Stage2(v1::Stage2Objective {
+            common: common_to_wire(
+                o.self_decode_probability,
+                o.unmasked_probability,
+                o.lpips_weight,
+                &o.augment,
+            ),
+            views: o.views as u64,
+        }),
+    }
+}
+
+fn objective_from_wire(
+    objective: &v1::train_settings::Objective,
+) -> Result<StageObjective, ConvertError> {
+    let common = |common: &Option<v1::ObjectiveSettings>| {
+        let common = required(common.as_ref(), "train.objective.common")?;
+        let augment = required(common.augment.as_ref(), "train.objective.common.augment")?;
+        Ok::<_, ConvertError>((*common, augment_from_wire(augment)))
+    };
+    Ok(match objective {
+        v1::train_settings::Objective::Stage1(o) => {
+            let (c, augment) = common(&o.common)?;
+            StageObjective::Stage1(Stage1Config {
+                self_decode_probability: c.self_decode_probability,
+                unmasked_probability: c.unmasked_probability,
+                lpips_weight: c.lpips_weight,
+                augment,
+            })
+        }
+        v1::train_settings::Objective::Stage2(o) => {
+            let (c, augment) = common(&o.common)?;
+            StageObjective::Stage2(Stage2Config {
+                views: size(o.views),
+                self_decode_probability: c.self_decode_probability,
+                unmasked_probability: c.unmasked_probability,
+                lpips_weight: c.lpips_weight,
+                augment,
+            })
+        }
+    })
+}
+
+impl From<&TrainConfig> for v1::TrainSettings {
+    fn from(t: &TrainConfig) -> Self {
+        let s = &t.schedule;
+        let o = &t.optimizer;
+        Self {
+            seed: t.seed,
+            objective: Some(objective_to_wire(&t.objective)),
+            global_batch: t.global_batch as u64,
+            micro_batch: t.micro_batch as u64,
+            shards: t.shards as u64,
+            schedule: Some(v1::ScheduleSettings {
+                initial_lr: s.initial_lr,
+                peak_lr: s.peak_lr,
+                final_lr: s.final_lr,
+                warmup_steps: s.warmup_steps,
+                total_steps: s.total_steps,
+            }),
+            optimizer: Some(v1::AdamWSettings {
+                beta1: o.beta1,
+                beta2: o.beta2,
+                epsilon: o.epsilon,
+                weight_decay: o.weight_decay,
+                clip_norm: o.clip_norm,
+                skip_norm_above: o.skip_norm_above,
+            }),
+        }
+    }
+}
+
+impl TryFrom<&v1::TrainSettings> for TrainConfig {
+    type Error = ConvertError;
+
+    fn try_from(t: &v1::TrainSettings) -> Result<Self, ConvertError> {
+        let s = required(t.schedule.as_ref(), "train.schedule")?;
+        let o = required(t.optimizer.as_ref(), "train.optimizer")?;
+        Ok(Self {
+            seed: t.seed,
+            objective: objective_from_wire(required(t.objective.as_ref(), "train.objective")?)?,
+            global_batch: size(t.global_batch),
+            micro_batch: size(t.micro_batch),
+            shards: size(t.shards),
+            schedule: Schedule {
+                initial_lr: s.initial_lr,
+                peak_lr: s.peak_lr,
+                final_lr: s.final_lr,
+                warmup_steps: s.warmup_steps,
+                total_steps: s.total_steps,
+            },
+            optimizer: AdamWConfig {
+                beta1: o.beta1,
+                beta2: o.beta2,
+                epsilon: o.epsilon,
+                weight_decay: o.weight_decay,
+                clip_norm: o.clip_norm,
+                skip_norm_above: o.skip_norm_above,
+            },
+        })
+    }
+}
+
+impl From<&DataSpec> for v1::DataSettings {
+    fn from(d: &DataSpec) -> Self {
+        let source = match &d.source {
+            DataSource::Generated {
+                scenes,
+                trajectories,
+                frames,
+            } => v1::data_settings::Source::Generated(v1::GeneratedData {
+                scenes: *scenes,
+                trajectories: *trajectories,
+                frames: *frames as u64,
+            }),
+            DataSource::Stored(stored) => v1::data_settings::Source::Stored(v1::StoredDatasets {
+                datasets: stored
+                    .iter()
+                    .map(|s| v1::StoredDataset {
+                        kind: kind_to_wire(s.kind),
+                        uri: s.uri.clone(),
+                        fingerprint: Some(v1::ListingFingerprint {
+                            objects: s.fingerprint.objects,
+                            bytes: s.fingerprint.bytes,
+                            newest: s.fingerprint.newest,
+                            paths_crc: s.fingerprint.paths_crc,
+                        }),
+                    })
+                    .collect(),
+            }),
+        };
+        let sampler = &d.sampler;
+        Self {
+            source: Some(source),
+            sampler: Some(v1::SamplerSettings {
+                frames: sampler.frames as u64,
+                curriculum_steps: sampler.curriculum_steps,
+                reverse_probability: sampler.reverse_probability,
+                long_baseline: sampler.long_baseline,
+                reference_band: sampler.reference_band,
+                datasets: sampler
+                    .datasets
+                    .iter()
+                    .map(|s| v1::DatasetSampling {
+                        dataset: kind_to_wire(s.dataset),
+                        weight: s.weight,
+                        window_begin: s.window_begin as u64,
+                        window_end: s.window_end as u64,
+                    })
+                    .collect(),
+            }),
+            image_size: d.image_size as u64,
+            seed: d.seed,
+            global_batch: d.global_batch as u64,
+        }
+    }
+}
+
+impl TryFrom<&v1::DataSettings> for DataSpec {
+    type Error = ConvertError;
+
+    fn try_from(d: &v1::DataSettings) -> Result<Self, ConvertError> {
+        let source = match required(d.source.as_ref(), "data.source")? {
+            v1::data_settings::Source::Generated(g) => DataSource::Generated {
+                scenes: g.scenes,
+                trajectories: g.trajectories,
+                frames: size(g.frames),
+            },
+            v1::data_settings::Source::Stored(stored) => DataSource::Stored(
+                stored
+                    .datasets
+                    .iter()
+                    .map(|s| {
+                        let f = required(s.fingerprint.as_ref(), "data.stored.fingerprint")?;
+                        Ok(StoredDataset {
+                            kind: kind_from_wire(s.kind, "data.stored.kind")?,
+                            uri: s.uri.clone(),
+                            fingerprint: ListingFingerprint {
+                                objects: f.objects,
+                                bytes: f.bytes,
+                                newest: f.newest,
+                                paths_crc: f.paths_crc,
+                            },
+                        })
+                    })
+                    .collect::<Result<_, ConvertError>>()?,
+            ),
+        };
+        let sampler = required(d.sampler.as_ref(), "data.sampler")?;
+        Ok(Self {
+            source,
+            sampler: SamplerConfig {
+                frames: size(sampler.frames),
+                curriculum_steps: sampler.curriculum_steps,
+                reverse_probability: sampler.reverse_probability,
+                long_baseline: sampler.long_baseline,
+                reference_band: sampler.reference_band,
+                datasets: sampler
+                    .datasets
+                    .iter()
+                    .map(|s| {
+                        Ok(DatasetSampling {
+                            dataset: kind_from_wire(s.dataset, "data.sampler.datasets.dataset")?,
+                            weight: s.weight,
+                            window_begin: size(s.window_begin),
+                            window_end: size(s.window_end),
+                        })
+                    })
+                    .collect::<Result<_, ConvertError>>()?,
+            },
+            image_size: size(d.image_size),
+            seed: d.seed,
+            global_batch: size(d.global_batch),
+        })
+    }
+}
+
+impl From<&EvaluationSpec> for v1::EvaluationSettings {
+    fn from(e: &EvaluationSpec) -> Self {
+        let oracle = match &e.oracle {
+            OracleSpec::GroundTruth => {
+                v1::evaluation_settings::Oracle::GroundTruth(v1::GroundTruthOracle {})
+            }
+            OracleSpec::Classical => {
+                v1::evaluation_settings::Oracle::Classical(v1::ClassicalOracle {})
+            }
+            OracleSpec::External { program, args } => {
+                v1::evaluation_settings::Oracle::External(v1::ExternalOracle {
+                    program: program.clone(),
+                    args: args.clone(),
+                })
+            }
+        };
+        Self {
+            seed: e.seed,
+            scenes: e.scenes,
+            trajectories: e.trajectories,
+            frames: e.frames as u64,
+            tps_pairs: e.tps_pairs as u64,
+            tps_frames: e.tps_frames as u64,
+            reconstruction_sequences: e.reconstruction_sequences as u64,
+            probe: Some(v1::ProbeSettings {
+                steps: e.probe.steps as u64,
+                batch: e.probe.batch as u64,
+                width: e.probe.width as u64,
+                learning_rate: e.probe.learning_rate,
+                test_scenes: e.probe.test_scenes,
+            }),
+            oracle: Some(oracle),
+            lpips_weights: e
+                .lpips_weights
+                .as_ref()
+                .map(|p| p.to_string_lossy().into_owned()),
+            compare_untrained: e.compare_untrained,
+        }
+    }
+}
+
+impl TryFrom<&v1::EvaluationSettings> for EvaluationSpec {
+    type Error = ConvertError;
+
+    fn try_from(e: &v1::EvaluationSettings) -> Result<Self, ConvertError> {
+        let probe = required(e.probe.as_ref(), "evaluate.probe")?;
+        let oracle = match required(e.oracle.as_ref(), "evaluate.oracle")? {
+            v1::evaluation_settings::Oracle::GroundTruth(_) => OracleSpec::GroundTruth,
+            v1::evaluation_settings::Oracle::Classical(_) => OracleSpec::Classical,
+            v1::evaluation_settings::Oracle::External(x) => OracleSpec::External {
+                program: x.program.clone(),
+                args: x.args.clone(),
+            },
+        };
+        Ok(Self {
+            seed: e.seed,
+            scenes: e.scenes,
+            trajectories: e.trajectories,
+            frames: size(e.frames),
+            tps_pairs: size(e.tps_pairs),
+            tps_frames: size(e.tps_frames),
+            reconstruction_sequences: size(e.reconstruction_sequences),
+            probe: ProbeSpec {
+                steps: size(probe.steps),
+                batch: size(probe.batch),
+                width: size(probe.width),
+                learning_rate: probe.learning_rate,
+                test_scenes: probe.test_scenes,
+            },
+            oracle,
+            lpips_weights: e.lpips_weights.as_ref().map(Into::into),
+            compare_untrained: e.compare_untrained,
+        })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn every_setting_survives_the_wire() {
+        let model = XFactorConfig::benchmark();
+        assert_eq!(XFactorConfig::from(&v1::ModelConfig::from(&model)), model);
+        for objective in [
+            StageObjective::Stage1(Stage1Config {
+                lpips_weight: 0.25,
+                ..Stage1Config::default()
+            }),
+            StageObjective::Stage2(Stage2Config {
+                views: 4,
+                ..Stage2Config::default()
+            }),
+        ] {
+            let train = TrainConfig {
+                seed: 7,
+                objective,
+                global_batch: 8,
+                micro_batch: 2,
+                shards: 3,
+                schedule: Schedule::default(),
+                optimizer: AdamWConfig {
+                    skip_norm_above: Some(5.0),
+                    ..AdamWConfig::default()
+                },
+            };
+            let back = TrainConfig::try_from(&v1::TrainSettings::from(&train)).unwrap();
+            assert_eq!(back, train);
+        }
+        for source in [
+            DataSource::Generated {
+                scenes: 3,
+                trajectories: 4,
+                frames: 5,
+            },
+            DataSource::Stored(vec![StoredDataset {
+                kind: DatasetKind::Co3dv2,
+                uri: "s3://bucket/co3d".into(),
+                fingerprint: ListingFingerprint {
+                    objects: 10,
+                    bytes: 20,
+                    newest: -3,
+                    paths_crc: 99,
+                },
+            }]),
+        ] {
+            let spec = DataSpec {
+                source,
+                sampler: SamplerConfig::stage2(),
+                image_size: 64,
+                seed: 1,
+                global_batch: 16,
+            };
+            assert_eq!(
+                DataSpec::try_from(&v1::DataSettings::from(&spec)).unwrap(),
+                spec
+            );
+        }
+        let evaluation = EvaluationSpec {
+            oracle: OracleSpec::External {
+                program: "poses".into(),
+                args: vec!["--fast".into()],
+            },
+            lpips_weights: Some("lpips.safetensors".into()),
+            ..EvaluationSpec::default()
+        };
+        let back = EvaluationSpec::try_from(&v1::EvaluationSettings::from(&evaluation)).unwrap();
+        assert_eq!(back, evaluation);
+        for phase in [
+            Phase::Stage1,
+            Phase::Stage2,
+            Phase::Evaluate,
+            Phase::Finished,
+        ] {
+            assert_eq!(
+                phase_from_wire(phase_to_wire(phase) as i32, "phase"),
+                Ok(phase)
+            );
+        }
+        for device in DeviceChoice::ALL {
+            assert_eq!(
+                device_from_wire(device_to_wire(device) as i32, "device"),
+                Ok(device)
+            );
+        }
+    }
+
+    #[test]
+    fn missing_parts_and_unknown_values_are_named() {
+        let mut train = v1::TrainSettings::from(&TrainConfig {
+            seed: 0,
+            objective: StageObjective::Stage1(Stage1Config::default()),
+            global_batch: 1,
+            micro_batch: 1,
+            shards: 0,
+            schedule: Schedule::default(),
+            optimizer: AdamWConfig::default(),
+        });
+        train.schedule = None;
+        assert_eq!(
+            TrainConfig::try_from(&train),
+            Err(ConvertError::Missing("train.schedule"))
+        );
+        assert_eq!(
+            phase_from_wire(0, "step.phase"),
+            Err(ConvertError::Unknown {
+                field: "step.phase",
+                value: 0
+            })
+        );
+        assert!(phase_from_wire(17, "x").is_err());
+    }
+}

@@ -1,0 +1,136 @@
+//! What the evaluation stage measures, small enough to travel in a job assignment: generated
+//! scenes, TPS, the pose probe, and which pose oracle scores transfers.
+
+use std::path::PathBuf;
+
+use serde::{Deserialize, Serialize};
+
+/// What to evaluate: small enough to travel as JSON in a job assignment.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct EvaluationSpec {
+    /// Seed of the generated scenes, trajectories, TPS pairs and probe batches.
+    pub seed: u64,
+    /// Generated scenes (the last `probe.test_scenes` are held out from probe training).
+    pub scenes: u64,
+    /// Camera trajectories, each rendered in every scene.
+    pub trajectories: u64,
+    /// Frames per trajectory.
+    pub frames: usize,
+    /// Transfers scored by TPS.
+    pub tps_pairs: usize,
+    /// Equally spaced target frames per transfer (the paper: 5).
+    pub tps_frames: usize,
+    /// Sequences autoencoded for PSNR / SSIM / LPIPS.
+    pub reconstruction_sequences: usize,
+    /// The pose probe.
+    pub probe: ProbeSpec,
+    /// The pose oracle of TPS.
+    pub oracle: OracleSpec,
+    /// LPIPS weights (safetensors, `tools/convert_lpips_weights.py`); LPIPS is skipped without.
+    pub lpips_weights: Option<PathBuf>,
+    /// Also evaluate an untrained model of the same configuration, as the baseline.
+    pub compare_untrained: bool,
+}
+
+impl EvaluationSpec {
+    /// Checks the limits the evaluation relies on, naming the key, so a cluster YAML is refused
+    /// when it is read rather than after training.
+    pub fn validate(&self) -> Result<(), String> {
+        let checks = [
+            (
+                self.scenes < 2,
+                "scenes",
+                "at least 2 (TPS renders one scene along another's motion)",
+            ),
+            (
+                self.trajectories < 2,
+                "trajectories",
+                "at least 2 (TPS compares against an unrelated one)",
+            ),
+            (self.frames < 2, "frames", "at least 2"),
+            (self.tps_frames < 2, "tps_frames", "at least 2"),
+            (self.tps_pairs == 0, "tps_pairs", "at least 1"),
+            (self.probe.steps == 0, "probe.steps", "at least 1"),
+            (self.probe.batch == 0, "probe.batch", "at least 1"),
+            (self.probe.width == 0, "probe.width", "at least 1"),
+            (
+                self.probe.test_scenes == 0 || self.probe.test_scenes >= self.scenes,
+                "probe.test_scenes",
+                "at least 1 and fewer than `scenes` (the rest train the probe)",
+            ),
+        ];
+        match checks.iter().find(|(bad, _, _)| *bad) {
+            Some((_, key, expected)) => Err(format!("{key}: expected {expected}")),
+            None => Ok(()),
+        }
+    }
+}
+
+impl Default for EvaluationSpec {
+    /// 6 scenes x 8 trajectories x 8 frames, 32 TPS pairs of 5 frames, 8 reconstructed
+    /// sequences, the default probe, the ground-truth oracle, an untrained baseline.
+    fn default() -> Self {
+        Self {
+            seed: 0,
+            scenes: 6,
+            trajectories: 8,
+            frames: 8,
+            tps_pairs: 32,
+            tps_frames: 5,
+            reconstruction_sequences: 8,
+            probe: ProbeSpec::default(),
+            oracle: OracleSpec::GroundTruth,
+            lpips_weights: None,
+            compare_untrained: true,
+        }
+    }
+}
+
+/// How the probe is trained.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(default)]
+pub struct ProbeSpec {
+    /// Optimiser steps (the paper: 10k).
+    pub steps: usize,
+    /// Samples per step (the paper: 64).
+    pub batch: usize,
+    /// Hidden width (the paper: 256).
+    pub width: usize,
+    /// AdamW learning rate.
+    pub learning_rate: f64,
+    /// Scenes held out for testing (the last ones).
+    pub test_scenes: u64,
+}
+
+impl Default for ProbeSpec {
+    /// 2000 steps of batch 64 at width 256, learning rate `1e-3`, two held-out scenes.
+    fn default() -> Self {
+        Self {
+            steps: 2000,
+            batch: 64,
+            width: 256,
+            learning_rate: 1e-3,
+            test_scenes: 2,
+        }
+    }
+}
+
+/// Which oracle an evaluation uses, in serialisable form so it can travel in a job spec.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
+#[serde(rename_all = "snake_case", tag = "kind")]
+pub enum OracleSpec {
+    /// Render-and-compare against the generated frames of known pose.
+    #[default]
+    GroundTruth,
+    /// Feature matching and essential matrices at the generated scenes' field of view.
+    Classical,
+    /// Any program that reads frame paths and prints poses as JSON.
+    External {
+        /// Program to run.
+        program: String,
+        /// Arguments placed before the frame paths.
+        #[serde(default)]
+        args: Vec<String>,
+    },
+}

@@ -1,0 +1,125 @@
+//! Objective settings of both stages and the photometric augmentation they apply to PoseEnc's
+//! input. The draws and batches built from them live in trainer-core; here is only what a
+//! cluster YAML names and an assignment carries.
+
+use serde::{Deserialize, Serialize};
+
+/// The part every stage objective has: the weight of LPIPS in its loss, which the stage's
+/// `lpips_weight` key sets and which decides whether LPIPS weights must be given.
+pub trait ObjectiveSettings: Default {
+    /// Weight of LPIPS in the loss (`0` trains with L1 alone).
+    fn lpips_weight(&self) -> f64;
+    /// Sets the weight.
+    fn set_lpips_weight(&mut self, weight: f64);
+}
+
+/// Ranges and probabilities of the augmentation (defaults: the paper's).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct AugmentConfig {
+    /// Probability of colour jitter.
+    pub jitter_probability: f64,
+    /// Brightness range half-width.
+    pub brightness: f64,
+    /// Contrast range half-width.
+    pub contrast: f64,
+    /// Saturation range half-width.
+    pub saturation: f64,
+    /// Hue range half-width.
+    pub hue: f64,
+    /// Probability of Gaussian blur.
+    pub blur_probability: f64,
+    /// Smallest blur sigma.
+    pub blur_sigma_min: f64,
+    /// Largest blur sigma.
+    pub blur_sigma_max: f64,
+    /// Blur kernel side (odd).
+    pub blur_kernel: usize,
+}
+
+impl Default for AugmentConfig {
+    fn default() -> Self {
+        Self {
+            jitter_probability: 0.9,
+            brightness: 0.2,
+            contrast: 0.2,
+            saturation: 0.2,
+            hue: 0.05,
+            blur_probability: 0.3,
+            blur_sigma_min: 0.1,
+            blur_sigma_max: 2.0,
+            blur_kernel: 7,
+        }
+    }
+}
+
+/// Stage-1 probabilities (defaults: the paper's) and the augmentation of PoseEnc's input.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct Stage1Config {
+    /// Probability that the target is replaced by the context (self-decode).
+    pub self_decode_probability: f64,
+    /// Probability that no quadrant is marked (plain autoencoding).
+    pub unmasked_probability: f64,
+    /// Weight of LPIPS in the loss (`0` trains with L1 alone).
+    pub lpips_weight: f64,
+    /// Photometric augmentation of PoseEnc's input.
+    pub augment: AugmentConfig,
+}
+
+impl Default for Stage1Config {
+    fn default() -> Self {
+        Self {
+            self_decode_probability: 0.05,
+            unmasked_probability: 0.05,
+            lpips_weight: 0.5,
+            augment: AugmentConfig::default(),
+        }
+    }
+}
+
+/// Stage-2 settings (defaults: the paper's).
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields, default)]
+pub struct Stage2Config {
+    /// Frames per sample: context views plus the target.
+    pub views: usize,
+    /// Probability that the target is replaced by a random context frame.
+    pub self_decode_probability: f64,
+    /// Probability that no quadrant is marked.
+    pub unmasked_probability: f64,
+    /// Weight of LPIPS in the loss.
+    pub lpips_weight: f64,
+    /// Photometric augmentation of PoseEnc's input.
+    pub augment: AugmentConfig,
+}
+
+impl Default for Stage2Config {
+    fn default() -> Self {
+        Self {
+            views: 6,
+            self_decode_probability: 0.02,
+            unmasked_probability: 0.05,
+            lpips_weight: 0.5,
+            augment: AugmentConfig::default(),
+        }
+    }
+}
+
+impl ObjectiveSettings for Stage1Config {
+    fn lpips_weight(&self) -> f64 {
+        self.lpips_weight
+    }
+    fn set_lpips_weight(&mut self, weight: f64) {
+        self.lpips_weight = weight;
+    }
+}
+
+impl ObjectiveSettings for Stage2Config {
+    fn lpips_weight(&self) -> f64 {
+        self.lpips_weight
+    }
+    fn set_lpips_weight(&mut self, weight: f64) {
+        self.lpips_weight = weight;
+    }
+}

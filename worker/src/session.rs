@@ -1,0 +1,200 @@
+//! The worker's session with the coordinator: connecting, registering, heartbeats that carry
+//! its progress, waiting for assignments, and leaving.
+
+use std::sync::Arc;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::time::{Duration, Instant};
+
+use anyhow::{Context, anyhow, bail};
+use proto::convert::device_to_wire;
+use proto::v1::coordinator_client::CoordinatorClient;
+use proto::v1::{
+    Assignment, AwaitAssignmentRequest, HeartbeatRequest, LeaveRequest, RegisterRequest,
+};
+use settings::XFactorConfig;
+use telemetry::Registry;
+use tokio::runtime::Runtime;
+use tokio::sync::watch;
+use tonic::service::interceptor::InterceptedService;
+use tonic::transport::Channel;
+
+use crate::daemon::{WorkerOptions, WorkerTls};
+use crate::metrics;
+
+/// The coordinator's client with the job token attached.
+pub type Client = CoordinatorClient<InterceptedService<Channel, proto::AttachToken>>;
+
+/// What the training thread and the heartbeat task share.
+pub struct Progress {
+    /// This worker's id (0 before registration).
+    pub worker: AtomicU64,
+    /// The generation being worked in.
+    pub generation: AtomicU64,
+    /// Steps done in it.
+    pub step: AtomicU64,
+    /// Set when the coordinator abandons the generation: the step in flight stops.
+    pub cancel: watch::Sender<bool>,
+    /// The worker's Prometheus series.
+    pub metrics: Arc<Registry>,
+}
+
+impl Progress {
+    /// Nothing registered yet.
+    pub fn new() -> Self {
+        let (cancel, _) = watch::channel(false);
+        Self {
+            worker: AtomicU64::new(0),
+            generation: AtomicU64::new(0),
+            step: AtomicU64::new(0),
+            cancel,
+            metrics: Arc::new(Registry::new()),
+        }
+    }
+
+    /// This worker's id.
+    pub fn worker_id(&self) -> u64 {
+        self.worker.load(Ordering::SeqCst)
+    }
+}
+
+impl Default for Progress {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+/// Tells the coordinator this worker is gone, so its group re-forms at once.
+pub fn leave(runtime: &Runtime, client: &mut Client, progress: &Progress) -> anyhow::Result<()> {
+    let request = LeaveRequest {
+        worker_id: progress.worker_id(),
+        reason: "SIGTERM".into(),
+    };
+    let said = runtime.block_on(async {
+        tokio::time::timeout(Duration::from_secs(5), client.leave(request)).await
+    });
+    match said {
+        Ok(Ok(_)) => tracing::info!("left the job"),
+        Ok(Err(status)) => {
+            tracing::warn!(error = %status.message(), "the coordinator did not hear the leave; it will notice the silence")
+        }
+        Err(_) => {
+            tracing::warn!(
+                "the coordinator did not answer the leave in 5 s; it will notice the silence"
+            )
+        }
+    }
+    Ok(())
+}
+
+/// Connects to the coordinator, retrying for a while (it may start after the workers).
+pub async fn connect(
+    address: &str,
+    token: &str,
+    tls: Option<&WorkerTls>,
+) -> anyhow::Result<Client> {
+    let mut endpoint = tonic::transport::Endpoint::from_shared(address.to_string())
+        .with_context(|| format!("coordinator address `{address}` is not a URL"))?
+        .connect_timeout(Duration::from_secs(2));
+    if let Some(tls) = tls {
+        if endpoint.uri().scheme_str() != Some("https") {
+            bail!("--tls-ca needs an https:// coordinator address, got `{address}`");
+        }
+        let host = endpoint.uri().host().unwrap_or("localhost").to_string();
+        endpoint = endpoint
+            .tls_config(tls.client(&host)?)
+            .with_context(|| format!("TLS with the CA {}", tls.ca.display()))?;
+    }
+    let deadline = Instant::now() + Duration::from_secs(60);
+    let channel = loop {
+        match endpoint.connect().await {
+            Ok(channel) => break channel,
+            Err(e) if Instant::now() >= deadline => {
+                bail!("cannot reach the coordinator at {address}: {e}")
+            }
+            Err(_) => tokio::time::sleep(Duration::from_millis(200)).await,
+        }
+    };
+    Ok(
+        CoordinatorClient::with_interceptor(channel, proto::AttachToken::new(token)?)
+            .max_decoding_message_size(proto::MAX_MESSAGE_BYTES),
+    )
+}
+
+/// Registers this worker; returns the heartbeat interval the coordinator expects.
+pub async fn register(
+    client: &mut Client,
+    options: &WorkerOptions,
+    address: &str,
+    progress: &Progress,
+) -> anyhow::Result<Duration> {
+    let reply = client
+        .register(RegisterRequest {
+            protocol_version: proto::PROTOCOL_VERSION,
+            model_config_version: XFactorConfig::SCHEMA_VERSION,
+            worker_name: options.name.clone(),
+            collective_address: address.to_string(),
+            device: options.device.map(|device| device_to_wire(device) as i32),
+            expected_model: options.expected_model_config.as_ref().map(Into::into),
+        })
+        .await
+        .map_err(|status| anyhow!("the coordinator refused registration: {}", status.message()))?
+        .into_inner();
+    progress.worker.store(reply.worker_id, Ordering::SeqCst);
+    tracing::info!(worker = reply.worker_id, job = %reply.job_name, collective = %address, "registered");
+    Ok(Duration::from_secs_f64(
+        reply.heartbeat_interval_s.max(0.05),
+    ))
+}
+
+/// Blocks until the coordinator has work for this worker after generation `after`, retrying
+/// while the coordinator is unavailable (it may be restarting).
+pub async fn await_assignment(
+    client: &mut Client,
+    progress: &Progress,
+    after: u64,
+) -> Result<Assignment, tonic::Status> {
+    loop {
+        let request = AwaitAssignmentRequest {
+            worker_id: progress.worker_id(),
+            after_generation: after,
+        };
+        match client.await_assignment(request).await {
+            Ok(reply) => return Ok(reply.into_inner()),
+            Err(status) if status.code() == tonic::Code::Unavailable => {
+                tracing::warn!("coordinator unavailable; retrying");
+                tokio::time::sleep(Duration::from_millis(500)).await;
+            }
+            Err(status) => return Err(status),
+        }
+    }
+}
+
+/// Sends a heartbeat with the step every `interval`; a reply saying the generation ended
+/// cancels the step in flight.
+pub async fn heartbeats(mut client: Client, progress: Arc<Progress>, interval: Duration) {
+    loop {
+        tokio::time::sleep(interval).await;
+        let generation = progress.generation.load(Ordering::SeqCst);
+        let request = HeartbeatRequest {
+            worker_id: progress.worker_id(),
+            generation,
+            step: progress.step.load(Ordering::SeqCst),
+        };
+        match client.heartbeat(request).await {
+            Ok(reply) => {
+                progress.metrics.add(&metrics::HEARTBEATS, &[], 1.0);
+                let reply = reply.into_inner();
+                if !reply.generation_current
+                    && generation == progress.generation.load(Ordering::SeqCst)
+                    && !*progress.cancel.borrow()
+                {
+                    progress.cancel.send_replace(true);
+                }
+            }
+            Err(status) => {
+                progress.metrics.add(&metrics::HEARTBEAT_FAILURES, &[], 1.0);
+                tracing::warn!(error = %status.message(), "heartbeat failed");
+            }
+        }
+    }
+}
