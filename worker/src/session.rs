@@ -2,14 +2,14 @@
 //! its progress, waiting for assignments, and leaving.
 
 use std::sync::Arc;
-use std::sync::atomic::{AtomicU64, Ordering};
+use std::sync::atomic::{AtomicI32, AtomicU64, Ordering};
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, anyhow, bail};
 use proto::convert::device_to_wire;
 use proto::v1::coordinator_client::CoordinatorClient;
 use proto::v1::{
-    Assignment, AwaitAssignmentRequest, HeartbeatRequest, LeaveRequest, RegisterRequest,
+    Activity, Assignment, AwaitAssignmentRequest, HeartbeatRequest, LeaveRequest, RegisterRequest,
 };
 use settings::XFactorConfig;
 use telemetry::Registry;
@@ -32,6 +32,9 @@ pub struct Progress {
     pub generation: AtomicU64,
     /// Steps done in it.
     pub step: AtomicU64,
+    /// What the worker is doing within its step (a `proto::v1::Activity` value), so the
+    /// coordinator can tell stuck from slow.
+    pub activity: AtomicI32,
     /// Set when the coordinator abandons the generation: the step in flight stops.
     pub cancel: watch::Sender<bool>,
     /// The worker's Prometheus series.
@@ -46,6 +49,7 @@ impl Progress {
             worker: AtomicU64::new(0),
             generation: AtomicU64::new(0),
             step: AtomicU64::new(0),
+            activity: AtomicI32::new(Activity::Idle as i32),
             cancel,
             metrics: Arc::new(Registry::new()),
         }
@@ -54,6 +58,11 @@ impl Progress {
     /// This worker's id.
     pub fn worker_id(&self) -> u64 {
         self.worker.load(Ordering::SeqCst)
+    }
+
+    /// Records what the worker does next; the next heartbeat carries it.
+    pub fn doing(&self, activity: Activity) {
+        self.activity.store(activity as i32, Ordering::SeqCst);
     }
 }
 
@@ -179,6 +188,7 @@ pub async fn heartbeats(mut client: Client, progress: Arc<Progress>, interval: D
             worker_id: progress.worker_id(),
             generation,
             step: progress.step.load(Ordering::SeqCst),
+            activity: progress.activity.load(Ordering::SeqCst),
         };
         match client.heartbeat(request).await {
             Ok(reply) => {

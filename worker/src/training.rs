@@ -10,7 +10,7 @@ use anyhow::{Context, anyhow, bail};
 use data::prefetch::{Prefetched, Schedule};
 use data::spec::{RankSource, rank_slice};
 use proto::convert::{ConvertError, device_from_wire, phase_from_wire};
-use proto::v1::{LossTerms, StepReport, TrainAssignment};
+use proto::v1::{Activity, LossTerms, StepReport, TrainAssignment};
 use settings::XFactorConfig;
 use settings::data::DataSpec;
 use settings::train::TrainConfig;
@@ -143,11 +143,13 @@ pub fn train_generation(
             bail!("the coordinator abandoned generation {generation}");
         }
         let started = Instant::now();
+        progress.doing(Activity::Computing);
         let (loss, grads) = trainer
             .slice_gradients(&source, first, count)
             .with_context(|| format!("gradients of step {step}"))?;
         let mut flat = flatten_gradients(trainer.model(), &grads);
         flat.push(loss);
+        progress.doing(Activity::Allreduce);
         let (returned, mut flat, reduce) = ring
             .all_reduce_on(runtime, flat)
             .with_context(|| format!("all-reduce of step {step}"))?;
@@ -157,6 +159,7 @@ pub fn train_generation(
         let outcome = trainer.apply_gradients(&grads, loss);
         let done = trainer.step();
         progress.step.store(done, Ordering::SeqCst);
+        progress.doing(Activity::Idle);
         let checksum_due =
             done.is_multiple_of(assignment.checksum_every.max(1)) || done == assignment.total_steps;
         let checksum = checksum_due.then(|| parameter_checksum(trainer.model()));
@@ -216,6 +219,7 @@ pub fn train_generation(
             || done == assignment.total_steps;
         if rank == 0 && commit_due {
             let _span = tracing::info_span!("checkpoint", step = done).entered();
+            progress.doing(Activity::Committing);
             let dir = scratch.join("save");
             let _ = std::fs::remove_dir_all(&dir);
             trainer.save_checkpoint(&dir)?;

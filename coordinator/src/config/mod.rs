@@ -17,6 +17,15 @@ pub use settings::DeviceChoice;
 pub use values::{NonEmpty, NonNegative, Positive};
 use values::{locate, pinpoint};
 
+/// The longest duration any `*_s` key may hold: 30 days.
+const MAX_SECONDS: f64 = 30.0 * 24.0 * 3600.0;
+
+/// The most workers one job may expect.
+const MAX_WORKERS: u64 = 4096;
+
+/// The most steps one stage may have (the paper's stages have 100k and 200k).
+const MAX_STEPS: u64 = 100_000_000;
+
 /// Why a cluster YAML was refused.
 #[derive(Debug, thiserror::Error)]
 pub enum ConfigError {
@@ -319,6 +328,12 @@ pub struct WorkersConfig {
     pub quorum_timeout_s: NonNegative,
     /// After losing a worker, wait this long for a replacement before re-forming.
     pub regroup_grace_s: NonNegative,
+    /// A group member that makes no progress in its step this long while a peer waits for
+    /// it in the all-reduce is removed (a worker stuck with its heartbeats alive).
+    pub stall_timeout_s: NonNegative,
+    /// A worker blamed for a failed generation sits out this long before it may join a group
+    /// again, doubled for each further failure (at most an hour).
+    pub exclusion_s: NonNegative,
     /// Parameter checksums every this many steps.
     pub checksum_every: Positive,
 }
@@ -334,6 +349,8 @@ impl Default for WorkersConfig {
             heartbeat_timeout_s: NonNegative(5.0),
             quorum_timeout_s: NonNegative(300.0),
             regroup_grace_s: NonNegative(2.0),
+            stall_timeout_s: NonNegative(120.0),
+            exclusion_s: NonNegative(30.0),
             checksum_every: Positive(1),
         }
     }
@@ -410,6 +427,7 @@ impl ClusterConfig {
                 at(&["workers", "minimum"])
             ));
         }
+        self.check_bounds(&at)?;
         if self.workers.heartbeat_timeout_s.0 <= self.workers.heartbeat_interval_s.0 {
             return Err(format!(
                 "workers.heartbeat_timeout_s ({}) must exceed workers.heartbeat_interval_s ({})",
@@ -435,6 +453,55 @@ impl ClusterConfig {
                         a.kind.name()
                     ));
                 }
+            }
+        }
+        Ok(())
+    }
+
+    /// Durations and counts within what the job can act on: a timeout of `1e20` seconds does
+    /// not fit a clock, a billion workers do not fit a ring, and a global batch smaller than
+    /// the group would leave ranks without samples.
+    fn check_bounds(&self, at: &dyn Fn(&[&str]) -> String) -> Result<(), String> {
+        let workers = &self.workers;
+        let seconds = [
+            ("heartbeat_interval_s", workers.heartbeat_interval_s.0, 0.01),
+            ("heartbeat_timeout_s", workers.heartbeat_timeout_s.0, 0.1),
+            ("quorum_timeout_s", workers.quorum_timeout_s.0, 0.0),
+            ("regroup_grace_s", workers.regroup_grace_s.0, 0.0),
+            ("stall_timeout_s", workers.stall_timeout_s.0, 0.1),
+            ("exclusion_s", workers.exclusion_s.0, 0.0),
+        ];
+        for (key, value, least) in seconds {
+            if !(least..=MAX_SECONDS).contains(&value) {
+                return Err(format!(
+                    "workers.{key}: expected between {least} and {MAX_SECONDS} seconds (30 days), found {value}{}",
+                    at(&["workers", key])
+                ));
+            }
+        }
+        if workers.expected.0 > MAX_WORKERS {
+            return Err(format!(
+                "workers.expected: expected at most {MAX_WORKERS} workers, found {}{}",
+                workers.expected.0,
+                at(&["workers", "expected"])
+            ));
+        }
+        for (stage, steps, global) in [
+            ("stage1", self.stage1.steps, self.stage1.global_batch),
+            ("stage2", self.stage2.steps, self.stage2.global_batch),
+        ] {
+            if steps > MAX_STEPS {
+                return Err(format!(
+                    "{stage}.steps: expected at most {MAX_STEPS}, found {steps}{}",
+                    at(&[stage, "steps"])
+                ));
+            }
+            if global < workers.expected.0 {
+                return Err(format!(
+                    "{stage}.global_batch: {global} samples cannot be split across workers.expected = {} workers (each rank needs at least one){}",
+                    workers.expected.0,
+                    at(&[stage, "global_batch"])
+                ));
             }
         }
         Ok(())

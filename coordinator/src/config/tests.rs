@@ -140,3 +140,17 @@ fn a_token_variable_that_is_not_set_is_named() {
         "{error}"
     );
 }
+
+#[test]
+fn durations_and_counts_out_of_bounds_are_refused_with_key_and_line() {
+    let huge = error_of(&format!("{GOOD}workers:\n  heartbeat_timeout_s: 1e20\n"));
+    assert!(huge.contains("workers.heartbeat_timeout_s"), "{huge}");
+    assert!(huge.contains("30 days"), "{huge}");
+    assert!(huge.contains("line 26"), "{huge}");
+    let crowd = error_of(&format!("{GOOD}workers:\n  expected: 100000\n"));
+    assert!(crowd.contains("workers.expected"), "{crowd}");
+    let small = error_of(&format!("{GOOD}workers:\n  expected: 16\n"));
+    assert!(small.contains("stage1.global_batch"), "{small}");
+    assert!(small.contains("16 workers"), "{small}");
+    assert!(small.contains("line 14"), "{small}");
+}

@@ -10,7 +10,7 @@
 use std::collections::{BTreeMap, BTreeSet, HashMap};
 use std::time::{Duration, Instant};
 
-use proto::v1::{Assignment, StepReport};
+use proto::v1::{Activity, Assignment, StepReport};
 use settings::Phase;
 
 use crate::plan::Plan;
@@ -33,6 +33,19 @@ struct Member {
     waiting_after: Option<u64>,
     finished_step: Option<(Phase, u64)>,
     samples_per_s: f64,
+    /// What the worker last said it was doing, at which step, and since when.
+    activity: (Activity, u64),
+    activity_since: Instant,
+}
+
+/// A worker's record of failures, kept by its collective address so it survives the worker
+/// registering again under a new id.
+#[derive(Debug, Clone, Default)]
+struct Penalty {
+    /// Generations this worker was blamed for.
+    failures: u32,
+    /// Not picked into a group before this.
+    excluded_until: Option<Instant>,
 }
 
 /// The running group.
@@ -52,6 +65,11 @@ pub struct Timing {
     pub quorum_timeout: Duration,
     /// Wait this long for a replacement after a loss.
     pub regroup_grace: Duration,
+    /// A member that makes no progress this long while its peers wait for it in the
+    /// all-reduce is removed from the group.
+    pub stall_timeout: Duration,
+    /// A blamed worker sits out this long, doubled for each further failure (at most an hour).
+    pub exclusion: Duration,
 }
 
 /// Why the state machine refused a worker's request; the service maps each to a gRPC status.
@@ -84,6 +102,7 @@ pub struct JobState {
     plan: Plan,
     timing: Timing,
     members: BTreeMap<u64, Member>,
+    penalties: HashMap<String, Penalty>,
     /// The generation number before this coordinator formed its first group.
     first_generation: u64,
     next_worker: u64,
@@ -134,6 +153,7 @@ impl JobState {
         Self {
             timing,
             members: BTreeMap::new(),
+            penalties: HashMap::new(),
             next_worker: base + 1,
             generation: base,
             first_generation: base,
@@ -220,16 +240,31 @@ impl JobState {
                 waiting_after: None,
                 finished_step: None,
                 samples_per_s: 0.0,
+                activity: (Activity::Idle, 0),
+                activity_since: now,
             },
         );
         id
     }
 
-    /// Records a heartbeat. Returns `(known, generation_current)`.
-    pub fn heartbeat(&mut self, worker: u64, generation: u64, now: Instant) -> (bool, bool) {
+    /// Records a sign of life; with `progress` (what the worker is doing at which step), the
+    /// time it last moved on. Returns `(known, generation_current)`.
+    pub fn heartbeat(
+        &mut self,
+        worker: u64,
+        generation: u64,
+        progress: Option<(Activity, u64)>,
+        now: Instant,
+    ) -> (bool, bool) {
         match self.members.get_mut(&worker) {
             Some(member) if !member.lost => {
                 member.last_seen = now;
+                if let Some(progress) = progress
+                    && progress != member.activity
+                {
+                    member.activity = progress;
+                    member.activity_since = now;
+                }
                 (true, self.is_current(generation))
             }
             _ => (false, false),
@@ -391,6 +426,7 @@ impl JobState {
                 changed = true;
             }
         }
+        changed |= self.remove_stalled(now);
         if let Some(group) = &self.group {
             let lost = group
                 .members
@@ -422,14 +458,94 @@ impl JobState {
         changed
     }
 
+    /// Removes the members of the running group that have not moved on from computing a step
+    /// for `stall_timeout` while a peer waits for them in that step's all-reduce: a worker
+    /// stuck (in a data read, say) whose heartbeats still arrive. Each is blamed and sits out
+    /// a back-off. Returns whether any was removed.
+    fn remove_stalled(&mut self, now: Instant) -> bool {
+        let Some(group) = &self.group else {
+            return false;
+        };
+        let waited_on = |step: u64| {
+            group.members.iter().any(|m| {
+                self.members.get(m).is_some_and(|peer| {
+                    peer.activity == (Activity::Allreduce, step)
+                        && now.duration_since(peer.activity_since) > self.timing.stall_timeout
+                })
+            })
+        };
+        let stalled: Vec<u64> = group
+            .members
+            .iter()
+            .copied()
+            .filter(|m| {
+                self.members.get(m).is_some_and(|member| {
+                    let (activity, step) = member.activity;
+                    !member.lost
+                        && matches!(activity, Activity::Computing | Activity::Idle)
+                        && now.duration_since(member.activity_since) > self.timing.stall_timeout
+                        && waited_on(step)
+                })
+            })
+            .collect();
+        for worker in &stalled {
+            let (name, step) = match self.members.get(worker) {
+                Some(member) => (member.name.clone(), member.activity.1),
+                None => continue,
+            };
+            tracing::warn!(
+                worker,
+                %name,
+                step,
+                stall_timeout_s = self.timing.stall_timeout.as_secs_f64(),
+                "worker removed: no progress in its step while its peers waited in the all-reduce"
+            );
+            self.blame(*worker, now);
+        }
+        !stalled.is_empty()
+    }
+
+    /// Marks `worker` lost and excludes its address from groups for a back-off that doubles
+    /// with each failure it is blamed for.
+    fn blame(&mut self, worker: u64, now: Instant) {
+        let Some(member) = self.members.get_mut(&worker) else {
+            return;
+        };
+        member.lost = true;
+        let penalty = self.penalties.entry(member.address.clone()).or_default();
+        penalty.failures += 1;
+        let factor = 2u32.saturating_pow(penalty.failures - 1);
+        let backoff = self
+            .timing
+            .exclusion
+            .saturating_mul(factor)
+            .min(Duration::from_secs(3600));
+        penalty.excluded_until = Some(now + backoff);
+        self.report.exclusions.push(records::Exclusion {
+            worker: member.name.clone(),
+            address: member.address.clone(),
+            failures: penalty.failures,
+            seconds: backoff.as_secs_f64(),
+        });
+    }
+
+    /// Whether the worker at `address` sits out a back-off at `now`.
+    fn excluded(&self, address: &str, now: Instant) -> bool {
+        self.penalties
+            .get(address)
+            .and_then(|p| p.excluded_until)
+            .is_some_and(|until| now < until)
+    }
+
     fn try_form(&mut self, now: Instant) -> bool {
         let settings = &self.plan.config.workers;
         let (expected, minimum) = (settings.expected.0 as usize, settings.minimum.0 as usize);
-        let alive = self.members.values().filter(|m| !m.lost).count();
+        let eligible = |m: &Member| !m.lost && !self.excluded(&m.address, now);
+        let alive = self.members.values().filter(|m| eligible(m)).count();
         let waiting: Vec<u64> = self
             .members
             .iter()
-            .filter(|(_, m)| !m.lost && m.waiting_after.is_some())
+            .filter(|(_, m)| eligible(m) && m.waiting_after.is_some())
             .map(|(&id, _)| id)
             .collect();
         let ready = if self.generation == self.first_generation {
@@ -500,6 +616,8 @@ impl JobState {
             self.assignments.insert(worker, assignment);
             if let Some(member) = self.members.get_mut(&worker) {
                 member.finished_step = None;
+                member.activity = (Activity::Idle, 0);
+                member.activity_since = now;
             }
         }
         self.group = Some(Group {

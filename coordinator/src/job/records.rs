@@ -111,6 +111,21 @@ pub struct Report {
     pub restarts: u64,
     /// Every generation: its group and where it started from.
     pub generations: Vec<GenerationStart>,
+    /// Workers blamed for a failed generation and sent to sit out a back-off.
+    pub exclusions: Vec<Exclusion>,
+}
+
+/// A worker blamed for a failed generation.
+#[derive(Debug, Clone, Serialize)]
+pub struct Exclusion {
+    /// Its name.
+    pub worker: String,
+    /// Its collective address, by which it is known across registrations.
+    pub address: String,
+    /// Failures it has been blamed for so far.
+    pub failures: u32,
+    /// How long it sits out.
+    pub seconds: f64,
 }
 
 /// How one generation started.

@@ -39,6 +39,8 @@ fn timing() -> Timing {
         heartbeat_timeout: Duration::from_secs(5),
         quorum_timeout: Duration::from_secs(60),
         regroup_grace: Duration::from_secs(1),
+        stall_timeout: Duration::from_secs(10),
+        exclusion: Duration::from_secs(30),
     }
 }
 
@@ -196,9 +198,9 @@ fn a_lost_worker_ends_the_generation_and_the_survivor_resumes_from_the_last_comm
     let (w0, w1) = (run.workers[0], run.workers[1]);
     run.commit(w0, Phase::Stage1, 2, generation);
     run.now += Duration::from_secs(3);
-    run.state.heartbeat(w0, generation, run.now);
+    run.state.heartbeat(w0, generation, None, run.now);
     run.now += Duration::from_secs(3);
-    run.state.heartbeat(w0, generation, run.now);
+    run.state.heartbeat(w0, generation, None, run.now);
     assert!(run.state.tick(run.now), "w1 is silent past the timeout");
     assert_eq!(run.state.report().restarts, 1);
     assert!(
@@ -292,4 +294,65 @@ fn checksum_disagreements_are_recorded_once_per_step() {
     }
     assert_eq!(run.state.mismatches(), 1);
     assert_eq!(run.state.report().steps.len(), 1);
+}
+
+#[test]
+fn a_member_stuck_in_its_step_while_its_peer_waits_is_removed_and_sits_out() {
+    let mut run = Run::new(false, None);
+    let generation = run.assign(0)[0].as_ref().unwrap().generation;
+    let (w0, w1) = (run.workers[0], run.workers[1]);
+    let beat = |run: &mut Run, worker, activity| {
+        let now = run.now;
+        run.state
+            .heartbeat(worker, generation, Some((activity, 3)), now)
+    };
+    beat(&mut run, w0, Activity::Allreduce);
+    beat(&mut run, w1, Activity::Computing);
+    for _ in 0..4 {
+        run.now += Duration::from_secs(3);
+        beat(&mut run, w0, Activity::Allreduce);
+        beat(&mut run, w1, Activity::Computing);
+        run.state.tick(run.now);
+    }
+    assert_eq!(run.state.report().restarts, 1, "w1 stalled for 12 s > 10 s");
+    let exclusions = run.state.report().exclusions;
+    assert_eq!(exclusions.len(), 1);
+    assert_eq!(exclusions[0].worker, "w1");
+    assert_eq!(exclusions[0].seconds, 30.0);
+    assert_eq!(
+        run.state
+            .request_assignment(w0, generation, run.now)
+            .unwrap(),
+        None,
+        "w0 waits out the regroup grace"
+    );
+    let again = run
+        .state
+        .register("w1".into(), "127.0.0.1:7001".into(), run.now);
+    run.workers = vec![w0, again];
+    run.now += Duration::from_secs(2);
+    let regrouped = run.assign(generation);
+    assert_eq!(
+        train(&regrouped[0]).world_size,
+        1,
+        "the stuck worker's address sits out"
+    );
+    assert!(regrouped[1].is_none());
+}
+
+#[test]
+fn a_slow_member_that_moves_on_is_not_removed() {
+    let mut run = Run::new(false, None);
+    let generation = run.assign(0)[0].as_ref().unwrap().generation;
+    let (w0, w1) = (run.workers[0], run.workers[1]);
+    for step in 0..6 {
+        run.now += Duration::from_secs(8);
+        run.state
+            .heartbeat(w0, generation, Some((Activity::Allreduce, step)), run.now);
+        run.state
+            .heartbeat(w1, generation, Some((Activity::Computing, step)), run.now);
+        run.state.tick(run.now);
+    }
+    assert_eq!(run.state.report().restarts, 0);
+    assert!(run.state.report().exclusions.is_empty());
 }

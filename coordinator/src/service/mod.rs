@@ -12,6 +12,7 @@ use proto::v1::coordinator_server::CoordinatorServer;
 use settings::Phase;
 use telemetry::Registry;
 use tokio::sync::{Mutex, Notify};
+use tokio_util::sync::CancellationToken;
 use tonic::service::interceptor::InterceptedService;
 
 use crate::job::{JobState, Report, Timing};
@@ -26,6 +27,9 @@ pub mod store;
 pub struct CoordinatorService {
     state: Arc<Mutex<JobState>>,
     changed: Arc<Notify>,
+    /// Cancelled when the job ends or a stop is requested: long-polling RPCs return at once,
+    /// so the server's graceful shutdown does not wait on them.
+    stopping: CancellationToken,
     checkpoints: DataRoot,
     heartbeat_interval_s: f64,
     metrics: Arc<Registry>,
@@ -107,11 +111,14 @@ impl CoordinatorService {
             heartbeat_timeout: Duration::from_secs_f64(workers.heartbeat_timeout_s.0),
             quorum_timeout: Duration::from_secs_f64(workers.quorum_timeout_s.0),
             regroup_grace: Duration::from_secs_f64(workers.regroup_grace_s.0),
+            stall_timeout: Duration::from_secs_f64(workers.stall_timeout_s.0),
+            exclusion: Duration::from_secs_f64(workers.exclusion_s.0),
         };
         let heartbeat_interval_s = workers.heartbeat_interval_s.0;
         Ok(Self {
             state: Arc::new(Mutex::new(JobState::new(plan, timing, durable))),
             changed: Arc::new(Notify::new()),
+            stopping: CancellationToken::new(),
             checkpoints,
             heartbeat_interval_s,
             metrics: Arc::new(Registry::new()),
@@ -235,6 +242,7 @@ impl CoordinatorService {
             () = ticker => {}
             () = shutdown => tracing::warn!("shutdown requested: the job stops; rerun to resume from its last commit"),
         }
+        self.stopping.cancel();
         finished.notify_one();
         serve
             .await

@@ -64,9 +64,16 @@ impl Coordinator for CoordinatorService {
         let request = request.into_inner();
         let span = tracing::trace_span!("rpc_heartbeat", worker = request.worker_id);
         async {
+            let activity = proto::v1::Activity::try_from(request.activity).map_err(|_| {
+                malformed(ConvertError::Unknown {
+                    field: "heartbeat.activity",
+                    value: request.activity,
+                })
+            })?;
             let (known, generation_current) = self.state.lock().await.heartbeat(
                 request.worker_id,
                 request.generation,
+                Some((activity, request.step)),
                 Instant::now(),
             );
             self.metrics.add(&metrics::HEARTBEATS, &[], 1.0);
@@ -89,7 +96,7 @@ impl Coordinator for CoordinatorService {
         async {
             let phase = phase_from_wire(report.phase, "step.phase").map_err(malformed)?;
             let mut state = self.state.lock().await;
-            state.heartbeat(report.worker_id, report.generation, Instant::now());
+            state.heartbeat(report.worker_id, report.generation, None, Instant::now());
             let generation_current = state.report_step(report.worker_id, phase, &report);
             if generation_current {
                 let rank0 = state.is_rank0(report.worker_id);
@@ -214,7 +221,12 @@ impl CoordinatorService {
                     self.changed.notify_waiters();
                 }
             }
-            let _ = tokio::time::timeout(Duration::from_millis(200), notified).await;
+            tokio::select! {
+                _ = tokio::time::timeout(Duration::from_millis(200), notified) => {}
+                () = self.stopping.cancelled() => {
+                    return Err(Status::unavailable("the coordinator is stopping; ask again once it is back"));
+                }
+            }
         }
     }
 
