@@ -4,7 +4,7 @@
 
 use std::path::Path;
 
-use anyhow::{anyhow, bail};
+use anyhow::{Context, anyhow, bail};
 use data::store::DataRoot;
 use proto::convert::phase_to_wire;
 use proto::v1::CheckpointCommit;
@@ -26,6 +26,7 @@ pub async fn upload(dir: &Path, location: &str, phase: Phase, step: u64) -> anyh
         files.push(CommitFile {
             name: name.clone(),
             bytes: bytes.len() as u64,
+            crc32: Some(crc32fast::hash(&bytes)),
         });
         root.write(&name, bytes).await?;
     }
@@ -36,11 +37,15 @@ pub async fn upload(dir: &Path, location: &str, phase: Phase, step: u64) -> anyh
 }
 
 /// Downloads the committed checkpoint at `location` into `dir`; fails when it has no
-/// `COMMIT.json` or a file's size differs from it.
+/// `COMMIT.json`, the manifest names a file outside the checkpoint, or a file's size or CRC-32
+/// differs from it.
 pub async fn download(location: &str, dir: &Path) -> anyhow::Result<CommitManifest> {
     let root = DataRoot::open(location)?;
     let manifest: CommitManifest = serde_json::from_slice(&root.read(MANIFEST_NAME).await?)
         .map_err(|e| anyhow!("{location}/{MANIFEST_NAME}: {e}"))?;
+    manifest
+        .validate()
+        .with_context(|| format!("checkpoint {location}"))?;
     std::fs::create_dir_all(dir)?;
     for file in &manifest.files {
         let bytes = root.read(&file.name).await?;
@@ -51,6 +56,14 @@ pub async fn download(location: &str, dir: &Path) -> anyhow::Result<CommitManife
             bytes.len(),
             file.bytes
         );
+        if let Some(expected) = file.crc32 {
+            let found = crc32fast::hash(&bytes);
+            anyhow::ensure!(
+                found == expected,
+                "{location}/{}: CRC-32 {found:08x}, {MANIFEST_NAME} says {expected:08x}: the file changed after it was committed",
+                file.name
+            );
+        }
         std::fs::write(dir.join(&file.name), bytes)?;
     }
     Ok(manifest)

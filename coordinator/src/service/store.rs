@@ -2,7 +2,7 @@
 //! committed checkpoints against their manifest, and the loss curves.
 
 use data::store::{DataRoot, StoreError};
-use settings::commit::{CommitManifest, MANIFEST_NAME};
+use settings::commit::{CommitManifest, MANIFEST_NAME, ManifestError};
 
 use super::ServeError;
 use crate::job::Durable;
@@ -59,6 +59,15 @@ pub enum CommitCheck {
         #[source]
         source: serde_json::Error,
     },
+    /// The manifest names a file outside the checkpoint, or one twice.
+    #[error("{location}: refused")]
+    Unsafe {
+        /// The commit's location.
+        location: String,
+        /// What is wrong with it.
+        #[source]
+        source: ManifestError,
+    },
     /// A listed file is absent.
     #[error("{location}/{name} is missing")]
     Missing {
@@ -94,6 +103,10 @@ pub async fn verify(location: &str) -> Result<CommitManifest, CommitCheck> {
             location: location.to_string(),
             source,
         })?;
+    manifest.validate().map_err(|source| CommitCheck::Unsafe {
+        location: location.to_string(),
+        source,
+    })?;
     let listed = root.list().await.map_err(unreadable)?;
     for file in &manifest.files {
         match listed.iter().find(|l| l.path == file.name) {
