@@ -83,6 +83,9 @@ async fn run(flags: &Flags) -> anyhow::Result<()> {
         std::fs::write(path, &json).with_context(|| format!("writing the report to {path}"))?;
     }
     tracing::info!(outcome = %report.outcome, restarts = report.restarts, mismatches = report.checksum_mismatches.len(), "job ended");
+    if let Some(reason) = report.outcome.strip_prefix("failed: ") {
+        bail!("the job failed: {reason}");
+    }
     if !report.checksum_mismatches.is_empty() {
         bail!(
             "ranks disagreed on parameters: {:?}",

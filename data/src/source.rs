@@ -1,11 +1,15 @@
 //! A training [`BatchSource`] over indexed datasets: the mixture picks a dataset, a sequence is
 //! drawn uniformly, the window sampler picks frames, and the frames are read (concurrently,
-//! each object once) and decoded. A corrupt frame is skipped, logged with its path and counted,
-//! and the sample is redrawn from the next sub-stream, so results stay deterministic.
+//! each object once) and decoded. A frame that is corrupt, missing (deleted after indexing) or
+//! unreadable is skipped, logged with its path and counted, and the sample is redrawn from the
+//! next sub-stream, so results stay deterministic. The newest few skipped frames are kept as
+//! examples for the job's report.
 
+use std::collections::VecDeque;
+use std::sync::Mutex;
 use std::sync::atomic::{AtomicU64, Ordering};
 
-use futures::future::try_join_all;
+use futures::future::join_all;
 
 use crate::decode::decode_frame;
 use settings::data::{DatasetKind, SamplerConfig};
@@ -21,6 +25,8 @@ use crate::store::DataRoot;
 const SOURCE_STREAM: u64 = 0x0044_4154_4153;
 /// Redraws allowed per sample before giving up (only reached when most frames are corrupt).
 const MAX_REDRAWS: u64 = 16;
+/// Skipped frames kept as examples.
+pub const SKIPPED_EXAMPLES: usize = 8;
 
 /// One indexed dataset and where it lives.
 #[derive(Debug, Clone)]
@@ -42,6 +48,7 @@ pub struct DatasetSource {
     seed: u64,
     runtime: tokio::runtime::Runtime,
     skipped_frames: AtomicU64,
+    skipped_examples: Mutex<VecDeque<String>>,
 }
 
 impl DatasetSource {
@@ -65,12 +72,38 @@ impl DatasetSource {
             seed,
             runtime,
             skipped_frames: AtomicU64::new(0),
+            skipped_examples: Mutex::new(VecDeque::new()),
         })
     }
 
-    /// Frames skipped so far because they could not be decoded.
+    /// Frames skipped so far because they were corrupt, missing or unreadable.
     pub fn skipped_frames(&self) -> u64 {
         self.skipped_frames.load(Ordering::Relaxed)
+    }
+
+    /// The newest skipped frames, `dataset uri/path: why`.
+    pub fn skipped_examples(&self) -> Vec<String> {
+        self.skipped_examples
+            .lock()
+            .map(|examples| examples.iter().cloned().collect())
+            .unwrap_or_default()
+    }
+
+    fn skip(&self, dataset: &IndexedDataset, path: &str, why: &dyn std::error::Error) {
+        self.skipped_frames.fetch_add(1, Ordering::Relaxed);
+        let mut reason = why.to_string();
+        let mut cause = why.source();
+        while let Some(next) = cause {
+            reason = format!("{reason}: {next}");
+            cause = next.source();
+        }
+        tracing::warn!(dataset = dataset.kind.name(), uri = dataset.root.uri(), path, %reason, "skipping frame");
+        if let Ok(mut examples) = self.skipped_examples.lock() {
+            if examples.len() == SKIPPED_EXAMPLES {
+                examples.pop_front();
+            }
+            examples.push_back(format!("{} {path}: {reason}", dataset.kind.name()));
+        }
     }
 
     /// `(frame index, image)` of every frame of global sample `sample` at `step`.
@@ -114,28 +147,31 @@ impl DatasetSource {
                 .iter()
                 .map(|&f| sequence.frames[f].as_str())
                 .collect();
-            let bytes = self
+            let reads = self
                 .runtime
-                .block_on(try_join_all(paths.iter().map(|p| dataset.root.read(p))))
-                .map_err(|e| e.to_string())?;
-            let decoded: Result<Vec<Image>, _> = bytes
-                .iter()
-                .zip(&paths)
-                .map(|(data, path)| decode_frame(data, path, self.image_size))
-                .collect();
-            match decoded {
-                Ok(images) => {
-                    return Ok(window
-                        .frames
-                        .iter()
-                        .map(|&f| f as u64)
-                        .zip(images)
-                        .collect());
+                .block_on(join_all(paths.iter().map(|p| dataset.root.read(p))));
+            let mut images = Vec::with_capacity(paths.len());
+            for (read, path) in reads.into_iter().zip(&paths) {
+                let decoded = match read {
+                    Ok(bytes) => decode_frame(&bytes, path, self.image_size)
+                        .map_err(|e| Box::new(e) as Box<dyn std::error::Error>),
+                    Err(error) => Err(Box::new(error) as Box<dyn std::error::Error>),
+                };
+                match decoded {
+                    Ok(image) => images.push(image),
+                    Err(error) => {
+                        self.skip(dataset, path, error.as_ref());
+                        break;
+                    }
                 }
-                Err(error) => {
-                    self.skipped_frames.fetch_add(1, Ordering::Relaxed);
-                    tracing::warn!(uri = dataset.root.uri(), %error, "skipping corrupt frame");
-                }
+            }
+            if images.len() == paths.len() {
+                return Ok(window
+                    .frames
+                    .iter()
+                    .map(|&f| f as u64)
+                    .zip(images)
+                    .collect());
             }
         }
         Err(format!(

@@ -164,7 +164,22 @@ impl RankSource {
         }
     }
 
-    /// Frames skipped as undecodable so far.
+    /// The newest skipped frames of the current epoch's loader, `dataset path: why`.
+    pub fn skipped_examples(&self) -> Vec<String> {
+        match &self.inner {
+            RankData::Generated(_) => Vec::new(),
+            RankData::Stored(stored) => stored
+                .current
+                .lock()
+                .map(|c| {
+                    c.as_ref()
+                        .map_or_else(Vec::new, |(_, s)| s.skipped_examples())
+                })
+                .unwrap_or_default(),
+        }
+    }
+
+    /// Frames skipped as corrupt, missing or unreadable so far.
     pub fn skipped_frames(&self) -> u64 {
         match &self.inner {
             RankData::Generated(_) => 0,

@@ -207,6 +207,11 @@ pub fn train_generation(
             allreduce_s: reduce.seconds,
             skipped_frames,
             step_s: elapsed,
+            skipped_examples: if skipped_frames > 0 {
+                source.inner().skipped_examples()
+            } else {
+                Vec::new()
+            },
         };
         let ack = runtime
             .block_on(client.report_step(report))

@@ -85,6 +85,11 @@ pub struct ClusterConfig {
     /// `--metrics-address` wins). Absent: no endpoint.
     #[serde(default)]
     pub metrics_listen: Option<NonEmpty>,
+    /// Frames the whole job may skip (corrupt, missing or unreadable objects, summed over
+    /// workers and generations) before it stops with a message naming the dataset and
+    /// examples: a few bad frames in millions are noise, thousands mean the data is broken.
+    #[serde(default = "default_max_skipped_frames")]
+    pub max_skipped_frames: u64,
     /// Evaluate stage 2's final weights (TPS, pose probe, reconstruction) on one worker once
     /// training is done; the report lands under `<checkpoint.uri>/evaluation/`. Absent: no
     /// evaluation stage. Every key is optional (`evaluate: {}` takes the defaults).
@@ -101,6 +106,10 @@ pub struct TlsConfig {
     pub cert: NonEmpty,
     /// Private key (PEM, PKCS#8, SEC1 or PKCS#1).
     pub key: NonEmpty,
+}
+
+fn default_max_skipped_frames() -> u64 {
+    1000
 }
 
 fn default_listen() -> NonEmpty {

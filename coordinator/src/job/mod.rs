@@ -23,6 +23,9 @@ mod tests;
 
 pub use records::{Commit, Durable, GenerationStart, Report, StepRecord};
 
+/// How many skipped-frame examples the report keeps.
+const SKIPPED_EXAMPLES: usize = 8;
+
 /// A registered worker.
 #[derive(Debug, Clone)]
 struct Member {
@@ -113,6 +116,8 @@ pub struct JobState {
     first_registration: Option<Instant>,
     lost_at: Option<Instant>,
     report: Report,
+    /// Frames skipped by each worker in each generation (its reports carry a running count).
+    skipped: HashMap<(u64, u64), u64>,
     /// Position in `report.steps` of each `(phase, step, generation)`, so a report finds its
     /// record without scanning the history.
     step_index: HashMap<(Phase, u64, u64), usize>,
@@ -168,6 +173,7 @@ impl JobState {
                 ..Report::default()
             },
             step_index: HashMap::new(),
+            skipped: HashMap::new(),
             durable,
             plan,
             current_step: 0,
@@ -216,10 +222,10 @@ impl JobState {
     /// The report so far.
     pub fn report(&self) -> Report {
         let mut report = self.report.clone();
-        report.outcome = if self.finished() {
-            "finished".into()
-        } else {
-            format!("stopped in {}", self.durable.phase)
+        report.outcome = match (&self.durable.failure, self.finished()) {
+            (Some(failure), _) => format!("failed: {failure}"),
+            (None, true) => "finished".into(),
+            (None, false) => format!("stopped in {}", self.durable.phase),
         };
         report
     }
@@ -325,6 +331,7 @@ impl JobState {
         }
         let loss = report.loss.unwrap_or_default();
         self.current_step = report.step + 1;
+        self.count_skipped(worker, report);
         let key = (phase, report.step, report.generation);
         let steps = &mut self.report.steps;
         let index = *self.step_index.entry(key).or_insert_with(|| {
@@ -354,6 +361,50 @@ impl JobState {
             }
         }
         true
+    }
+
+    /// Adds a report's skipped frames to the job's count; past `max_skipped_frames` the job
+    /// stops, naming the datasets and examples.
+    fn count_skipped(&mut self, worker: u64, report: &StepReport) {
+        if report.skipped_frames == 0 {
+            return;
+        }
+        self.skipped
+            .insert((report.generation, worker), report.skipped_frames);
+        for example in &report.skipped_examples {
+            if !self.report.skipped_examples.contains(example) {
+                self.report.skipped_examples.push(example.clone());
+            }
+        }
+        let excess = self
+            .report
+            .skipped_examples
+            .len()
+            .saturating_sub(SKIPPED_EXAMPLES);
+        self.report.skipped_examples.drain(..excess);
+        self.report.skipped_frames = self.skipped.values().sum();
+        let limit = self.plan.config.max_skipped_frames;
+        if self.report.skipped_frames > limit && self.durable.failure.is_none() {
+            self.fail(format!(
+                "{} frames could not be read or decoded (max_skipped_frames: {limit}); examples: {}",
+                self.report.skipped_frames,
+                self.report.skipped_examples.join("; ")
+            ));
+        }
+    }
+
+    /// Stops the job: no group forms again, workers are told to finish, and the reason is kept
+    /// in `job.json` and the report.
+    pub fn fail(&mut self, reason: String) {
+        tracing::error!(%reason, "the job stops");
+        self.durable.failure = Some(reason);
+        self.durable.phase = Phase::Finished;
+        self.group = None;
+    }
+
+    /// Why the job stopped short, if it did.
+    pub fn failure(&self) -> Option<&str> {
+        self.durable.failure.as_deref()
     }
 
     /// Accepts a verified checkpoint commit from the current group; returns whether its phase

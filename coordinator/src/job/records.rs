@@ -36,6 +36,9 @@ pub struct Durable {
     /// Where the evaluation report was committed.
     #[serde(default)]
     pub evaluation: Option<String>,
+    /// Why the job stopped short, when it did.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub failure: Option<String>,
 }
 
 impl Durable {
@@ -48,6 +51,7 @@ impl Durable {
             stage1_final: None,
             stage2_final: None,
             evaluation: None,
+            failure: None,
         }
     }
 }
@@ -113,6 +117,10 @@ pub struct Report {
     pub generations: Vec<GenerationStart>,
     /// Workers blamed for a failed generation and sent to sit out a back-off.
     pub exclusions: Vec<Exclusion>,
+    /// Frames skipped (corrupt, missing or unreadable) over the whole job.
+    pub skipped_frames: u64,
+    /// The newest of them, `dataset path: why`.
+    pub skipped_examples: Vec<String>,
 }
 
 /// A worker blamed for a failed generation.

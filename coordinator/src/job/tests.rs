@@ -356,3 +356,34 @@ fn a_slow_member_that_moves_on_is_not_removed() {
     assert_eq!(run.state.report().restarts, 0);
     assert!(run.state.report().exclusions.is_empty());
 }
+
+#[test]
+fn skipped_frames_past_the_job_limit_stop_the_job_naming_examples() {
+    let mut run = Run::new(false, None);
+    let generation = run.assign(0)[0].as_ref().unwrap().generation;
+    let limit = run.state.plan().config.max_skipped_frames;
+    for (worker, count, path) in [
+        (run.workers[0], limit / 2, "a.jpg"),
+        (run.workers[1], limit / 2 + 1, "b.jpg"),
+    ] {
+        let report = StepReport {
+            worker_id: worker,
+            generation,
+            step: 0,
+            skipped_frames: count,
+            skipped_examples: vec![format!("re10k {path}: does not exist")],
+            ..StepReport::default()
+        };
+        run.state.report_step(worker, Phase::Stage1, &report);
+    }
+    assert!(run.state.finished());
+    let outcome = run.state.report().outcome;
+    assert!(outcome.starts_with("failed: 1001 frames"), "{outcome}");
+    assert!(outcome.contains("re10k a.jpg: does not exist"), "{outcome}");
+    assert!(outcome.contains("re10k b.jpg"), "{outcome}");
+    let next = run.assign(generation);
+    assert!(matches!(
+        next[0].as_ref().and_then(|a| a.work.as_ref()),
+        Some(Work::Finish(_))
+    ));
+}

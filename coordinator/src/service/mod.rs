@@ -142,6 +142,30 @@ impl CoordinatorService {
         );
     }
 
+    /// Writes `job.json` once more when the job stopped short, so a rerun does not resume it
+    /// and operators find the reason beside the checkpoints. A write failure is logged: the
+    /// report carries the reason too.
+    async fn record_failure(&self) {
+        let durable = {
+            let state = self.state.lock().await;
+            if state.failure().is_none() {
+                return;
+            }
+            state.durable().clone()
+        };
+        let written = match serde_json::to_vec_pretty(&durable) {
+            Ok(json) => self
+                .checkpoints
+                .write(store::DURABLE_OBJECT, json)
+                .await
+                .map_err(|e| store::chain(&e)),
+            Err(e) => Err(e.to_string()),
+        };
+        if let Err(error) = written {
+            tracing::warn!(%error, "the failed job's state was not written to job.json");
+        }
+    }
+
     /// Writes `curves/stage{N}.csv` and `.png` under the checkpoint URI. A failure is logged,
     /// not fatal: the curves are a convenience, the report holds every step.
     async fn write_curves(&self, phase: Phase) {
@@ -243,6 +267,7 @@ impl CoordinatorService {
             () = shutdown => tracing::warn!("shutdown requested: the job stops; rerun to resume from its last commit"),
         }
         self.stopping.cancel();
+        self.record_failure().await;
         finished.notify_one();
         serve
             .await
