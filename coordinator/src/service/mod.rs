@@ -7,7 +7,7 @@ use std::path::Path;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use data::store::{DataRoot, StoreError};
+use data::store::{DataRoot, ObjectVersion, StoreError};
 use proto::v1::coordinator_server::CoordinatorServer;
 use settings::Phase;
 use telemetry::Registry;
@@ -29,6 +29,8 @@ pub struct CoordinatorService {
     checkpoints: DataRoot,
     heartbeat_interval_s: f64,
     metrics: Arc<Registry>,
+    /// The version of `job.json` this coordinator last read or wrote (see `store::write_durable`).
+    durable_version: Arc<Mutex<Option<ObjectVersion>>>,
 }
 
 /// Why a job could not run.
@@ -98,7 +100,9 @@ impl CoordinatorService {
         let config = &plan.config;
         let checkpoints =
             DataRoot::create(&config.checkpoint.uri.0).map_err(ServeError::OpenStore)?;
-        let durable = store::read_durable(&checkpoints, &config.job.0).await?;
+        let (durable, durable_version) = store::read_durable(&checkpoints, &config.job.0)
+            .await?
+            .unzip();
         if let Some(durable) = &durable {
             tracing::info!(phase = %durable.phase, last_commit = ?durable.last_commit, "resuming the job from its checkpoint store");
         }
@@ -115,6 +119,7 @@ impl CoordinatorService {
             checkpoints,
             heartbeat_interval_s,
             metrics: Arc::new(Registry::new()),
+            durable_version: Arc::new(Mutex::new(durable_version)),
         })
     }
 
