@@ -14,6 +14,7 @@ use telemetry::Registry;
 use tokio::sync::{Mutex, Notify};
 use tonic::service::interceptor::InterceptedService;
 
+use crate::health::JobHealth;
 use crate::job::{JobState, Report, Timing};
 use crate::metrics;
 use crate::plan::Plan;
@@ -198,14 +199,18 @@ impl CoordinatorService {
         }
         let finished = Arc::new(Notify::new());
         let stop_server = finished.clone();
+        // Outside the token interceptor: probes carry no token.
+        let (health, health_server) = JobHealth::new().await;
         let serve = tokio::spawn(
             builder
                 .add_service(server)
+                .add_service(health_server)
                 .serve_with_shutdown(address, async move { stop_server.notified().await }),
         );
         tracing::info!(%address, "coordinator listening");
         let ticker = {
             let service = self.clone();
+            let health = health.clone();
             async move {
                 let mut phase = service.state.lock().await.phase();
                 loop {
@@ -226,6 +231,7 @@ impl CoordinatorService {
                     }
                     phase = phase.max(now_phase);
                     if done {
+                        health.job_ending().await;
                         // Let every worker collect its FINISH before the server goes.
                         tokio::time::sleep(Duration::from_secs_f64(
                             (service.heartbeat_interval_s * 4.0).max(1.0),
@@ -240,6 +246,8 @@ impl CoordinatorService {
             () = ticker => {}
             () = shutdown => tracing::warn!("shutdown requested: the job stops; rerun to resume from its last commit"),
         }
+        health.job_ending().await;
+        health.close().await;
         finished.notify_one();
         serve
             .await

@@ -1,0 +1,245 @@
+//! Shared by the store and health tests: a job's processes on loopback, and moto's S3 server
+//! started on loopback for the S3 tests. Each test binary compiles this module and uses part
+//! of it, hence the `dead_code` allowances.
+
+#![allow(dead_code)]
+
+use std::io::{Read, Write};
+use std::net::TcpStream;
+use std::path::{Path, PathBuf};
+use std::process::{Child, Command, Stdio};
+use std::time::{Duration, Instant};
+
+use coordinator::local::{LocalJob, free_port};
+use serde_json::Value;
+
+/// The folder of the coordinator binary, which must hold the worker binary too.
+pub fn binaries() -> PathBuf {
+    let coordinator = PathBuf::from(env!("CARGO_BIN_EXE_xfactor-coordinator"));
+    let folder = coordinator.parent().expect("binary folder").to_path_buf();
+    assert!(
+        folder.join("xfactor-worker").exists(),
+        "xfactor-worker must be built next to xfactor-coordinator (cargo test --workspace builds both)"
+    );
+    folder
+}
+
+/// A job's coordinator and workers as processes; killed on drop.
+pub struct Running {
+    /// The job.
+    pub job: LocalJob,
+    /// The coordinator process.
+    pub coordinator: Child,
+    /// The worker processes.
+    pub workers: Vec<Child>,
+}
+
+impl Running {
+    /// Writes the job's data and YAML, then starts the coordinator and the workers.
+    pub fn start(job: LocalJob) -> Self {
+        let runtime = tokio::runtime::Runtime::new().unwrap();
+        runtime.block_on(job.prepare()).unwrap();
+        let binaries = binaries();
+        let coordinator = job.spawn_coordinator(&binaries).unwrap();
+        let workers = (0..job.workers)
+            .map(|i| job.spawn_worker(&binaries, i).unwrap())
+            .collect();
+        Self {
+            job,
+            coordinator,
+            workers,
+        }
+    }
+
+    /// The last lines of every log of the job, for failure messages.
+    pub fn logs(&self) -> String {
+        let mut text = String::new();
+        for entry in std::fs::read_dir(&self.job.dir).unwrap().flatten() {
+            let path = entry.path();
+            if path.extension().is_some_and(|e| e == "log") {
+                let log = std::fs::read_to_string(&path).unwrap_or_default();
+                let tail: Vec<&str> = log.lines().rev().take(25).collect();
+                text.push_str(&format!("== {}\n", path.display()));
+                for line in tail.into_iter().rev() {
+                    text.push_str(line);
+                    text.push('\n');
+                }
+            }
+        }
+        text
+    }
+
+    /// Waits for the coordinator to end (successfully) and returns the report.
+    pub fn finish(mut self, limit: Duration) -> Value {
+        let status = wait_exit(&mut self.coordinator, limit);
+        assert!(
+            status.is_some_and(|s| s.success()),
+            "coordinator failed or did not finish in {limit:?}: {status:?}\n{}",
+            self.logs()
+        );
+        for worker in &mut self.workers {
+            let _ = wait_exit(worker, Duration::from_secs(20));
+            let _ = worker.kill();
+        }
+        serde_json::from_slice(&std::fs::read(self.job.report_path()).unwrap()).unwrap()
+    }
+}
+
+impl Drop for Running {
+    fn drop(&mut self) {
+        let _ = self.coordinator.kill();
+        for worker in &mut self.workers {
+            let _ = worker.kill();
+        }
+    }
+}
+
+/// Waits up to `limit` for `child` to exit; `None` if it did not.
+pub fn wait_exit(child: &mut Child, limit: Duration) -> Option<std::process::ExitStatus> {
+    let deadline = Instant::now() + limit;
+    loop {
+        if let Some(status) = child.try_wait().unwrap() {
+            return Some(status);
+        }
+        if Instant::now() > deadline {
+            return None;
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    }
+}
+
+/// A 2-worker job of 4 + 3 steps on 3 x 3 generated sequences of 10 frames, committing every
+/// 2 steps.
+pub fn small_job(dir: &Path) -> LocalJob {
+    let mut job = LocalJob::new(dir, free_port().unwrap());
+    job.scenes = 3;
+    job.trajectories = 3;
+    job.frames = 10;
+    job.stage1_steps = 4;
+    job.stage2_steps = 3;
+    job.checkpoint_every = 2;
+    job
+}
+
+/// moto's S3 server as a child process on a loopback port, killed on drop.
+pub struct Moto {
+    child: Child,
+    /// `http://127.0.0.1:PORT`.
+    pub endpoint: String,
+    port: u16,
+    log: PathBuf,
+}
+
+/// How long moto may take to answer after starting (it imports Flask and boto; about 2 s on
+/// the 2-core CI machine).
+const MOTO_START_LIMIT: Duration = Duration::from_secs(60);
+
+impl Moto {
+    /// Where `scripts/setup.sh` installs `moto_server`, or `$XFACTOR_MOTO_SERVER`.
+    pub fn program() -> PathBuf {
+        if let Some(program) = std::env::var_os("XFACTOR_MOTO_SERVER") {
+            return PathBuf::from(program);
+        }
+        let cache = std::env::var_os("XDG_CACHE_HOME")
+            .map(PathBuf::from)
+            .or_else(|| std::env::var_os("HOME").map(|home| PathBuf::from(home).join(".cache")))
+            .expect("HOME or XDG_CACHE_HOME must be set to find moto_server");
+        cache.join("xfactor-dist/s3-env/bin/moto_server")
+    }
+
+    /// Starts the server (its log goes to `dir/moto.log`) and waits until it answers. Panics,
+    /// failing the test, when it cannot be started: these tests must not pass by skipping.
+    pub fn start(dir: &Path) -> Self {
+        let program = Self::program();
+        let port = free_port().unwrap();
+        let log = dir.join("moto.log");
+        let child = Command::new(&program)
+            .args(["-H", "127.0.0.1", "-p", &port.to_string()])
+            .stdin(Stdio::null())
+            .stdout(Stdio::null())
+            .stderr(std::fs::File::create(&log).unwrap())
+            .spawn()
+            .unwrap_or_else(|e| {
+                panic!(
+                    "cannot start moto's S3 server `{}`: {e}; run scripts/setup.sh, which installs moto[server] there (or set XFACTOR_MOTO_SERVER)",
+                    program.display()
+                )
+            });
+        let mut moto = Self {
+            child,
+            endpoint: format!("http://127.0.0.1:{port}"),
+            port,
+            log,
+        };
+        let started = Instant::now();
+        loop {
+            if let Some(status) = moto.child.try_wait().unwrap() {
+                panic!(
+                    "moto's S3 server exited at start ({status}):\n{}",
+                    std::fs::read_to_string(&moto.log).unwrap_or_default()
+                );
+            }
+            if moto.request("GET", "/").is_ok_and(|s| s == 200) {
+                break;
+            }
+            assert!(
+                started.elapsed() < MOTO_START_LIMIT,
+                "moto's S3 server did not answer on {} within {MOTO_START_LIMIT:?}:\n{}",
+                moto.endpoint,
+                std::fs::read_to_string(&moto.log).unwrap_or_default()
+            );
+            std::thread::sleep(Duration::from_millis(100));
+        }
+        eprintln!(
+            "moto S3 server answering on {} after {:.2} s",
+            moto.endpoint,
+            started.elapsed().as_secs_f64()
+        );
+        moto
+    }
+
+    /// One bodiless HTTP/1.1 request; the response's status code.
+    fn request(&self, method: &str, path: &str) -> std::io::Result<u16> {
+        let mut stream = TcpStream::connect(("127.0.0.1", self.port))?;
+        stream.set_read_timeout(Some(Duration::from_secs(10)))?;
+        write!(
+            stream,
+            "{method} {path} HTTP/1.1\r\nHost: 127.0.0.1:{}\r\nContent-Length: 0\r\nConnection: close\r\n\r\n",
+            self.port
+        )?;
+        let mut response = String::new();
+        stream.read_to_string(&mut response)?;
+        response
+            .split_whitespace()
+            .nth(1)
+            .and_then(|code| code.parse().ok())
+            .ok_or_else(|| std::io::Error::other(format!("not an HTTP response: {response:.80}")))
+    }
+
+    /// Creates bucket `name` (object_store cannot create buckets).
+    pub fn create_bucket(&self, name: &str) {
+        let status = self.request("PUT", &format!("/{name}")).unwrap();
+        assert_eq!(status, 200, "creating bucket {name}");
+    }
+
+    /// The store settings that point object_store at this server, as environment variables.
+    pub fn env(&self) -> Vec<(String, String)> {
+        [
+            ("AWS_ENDPOINT", self.endpoint.as_str()),
+            ("AWS_ALLOW_HTTP", "true"),
+            ("AWS_ACCESS_KEY_ID", "testing"),
+            ("AWS_SECRET_ACCESS_KEY", "testing"),
+            ("AWS_REGION", "us-east-1"),
+        ]
+        .into_iter()
+        .map(|(key, value)| (key.to_string(), value.to_string()))
+        .collect()
+    }
+}
+
+impl Drop for Moto {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
