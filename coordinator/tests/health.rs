@@ -97,6 +97,9 @@ fn the_health_service_says_serving_during_training_and_not_serving_after_the_job
             running.logs()
         );
     });
+    // Closes this test's connections: an idle client that is not polled would never answer
+    // the server's graceful-shutdown ping, and the coordinator would wait for it.
+    drop(runtime);
     let report = running.finish(Duration::from_secs(60));
     assert_eq!(report["outcome"], "finished", "{report:#}");
 }
@@ -134,7 +137,10 @@ fn checked_count(text: &str, name: &str) -> f64 {
         .map(|(_, value)| *value)
         .collect();
     assert!(buckets.len() > 2, "{name}: {lines:?}");
-    assert!(buckets.windows(2).all(|w| w[0] <= w[1]), "{name}: {lines:?}");
+    assert!(
+        buckets.windows(2).all(|w| w[0] <= w[1]),
+        "{name}: {lines:?}"
+    );
     let count = lines
         .iter()
         .find(|(series, _)| *series == format!("{name}_count"))
@@ -198,15 +204,26 @@ fn worker_pages_carry_duration_histograms_that_promtool_accepts() {
             "xfactor_data_wait_seconds",
         ] {
             let count = checked_count(text, name);
-            assert!(count >= 2.0, "{name}: {count} observations by the first commit");
+            assert!(
+                count >= 2.0,
+                "{name}: {count} observations by the first commit"
+            );
             eprintln!("{name}: {count} observations");
         }
         if text.contains("xfactor_checkpoint_upload_seconds_count") {
             uploads += checked_count(text, "xfactor_checkpoint_upload_seconds");
         }
     }
-    assert!(uploads >= 1.0, "rank 0 observed its upload:\n{}", pages.join("\n"));
-    pages.push(runtime.block_on(page(coordinator_port)).expect("the coordinator's /metrics"));
+    assert!(
+        uploads >= 1.0,
+        "rank 0 observed its upload:\n{}",
+        pages.join("\n")
+    );
+    pages.push(
+        runtime
+            .block_on(page(coordinator_port))
+            .expect("the coordinator's /metrics"),
+    );
     for text in &pages {
         match promtool(text) {
             Some((accepted, said)) => assert!(accepted, "promtool check metrics: {said}\n{text}"),
