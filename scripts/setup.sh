@@ -1,17 +1,42 @@
 #!/usr/bin/env bash
-# Installs what the project needs beyond a Rust toolchain: a Vulkan loader and Mesa's lavapipe
-# software device, so burn-wgpu runs (on the CPU) on machines without a GPU.
+# Installs what the project needs beyond a Rust toolchain:
+# - a Vulkan loader and Mesa's lavapipe software device, so burn-wgpu runs (on the CPU) on
+#   machines without a GPU;
+# - ffmpeg (and ffprobe), which `xfactor transfer` uses to decode video files and to write the
+#   MP4, and which its test uses to make and measure videos;
+# - moto's S3 server (PyPI `moto[server]`, pinned) in a virtual environment in the persistent
+#   cache, which the S3 integration tests start on loopback. Those tests fail, not skip, when
+#   it is missing, so this step fails loudly too.
 set -euo pipefail
 
-have_lavapipe() {
-    ls /usr/share/vulkan/icd.d/lvp_icd*.json >/dev/null 2>&1 && ldconfig -p | grep -q libvulkan.so.1
-}
+sudo_cmd=""
+if [ "$(id -u)" != 0 ]; then sudo_cmd="sudo"; fi
+apt_packages=()
 
-if ! have_lavapipe; then
-    sudo_cmd=""
-    if [ "$(id -u)" != 0 ]; then sudo_cmd="sudo"; fi
-    echo "setup: installing mesa-vulkan-drivers (lavapipe) and libvulkan1" >&2
+if ! { ls /usr/share/vulkan/icd.d/lvp_icd*.json >/dev/null 2>&1 && ldconfig -p | grep -q libvulkan.so.1; }; then
+    apt_packages+=(mesa-vulkan-drivers libvulkan1)
+fi
+if ! command -v ffmpeg >/dev/null || ! command -v ffprobe >/dev/null; then
+    apt_packages+=(ffmpeg)
+fi
+if [ "${#apt_packages[@]}" -gt 0 ]; then
+    echo "setup: installing ${apt_packages[*]}" >&2
     $sudo_cmd apt-get update -qq
     DEBIAN_FRONTEND=noninteractive $sudo_cmd apt-get install -y -qq --no-install-recommends \
-        mesa-vulkan-drivers libvulkan1 >/dev/null
+        "${apt_packages[@]}" >/dev/null
+fi
+
+moto_version="5.2.1"
+s3_env="${XDG_CACHE_HOME:-$HOME/.cache}/xfactor-dist/s3-env"
+if ! "$s3_env/bin/python" -c "import moto, sys; sys.exit(moto.__version__ != '$moto_version')" 2>/dev/null; then
+    echo "setup: installing moto[server]==$moto_version into $s3_env" >&2
+    if ! python3 -m venv "$s3_env" >/dev/null 2>&1; then
+        # Debian's python3 has venv in a separate package.
+        $sudo_cmd apt-get update -qq
+        DEBIAN_FRONTEND=noninteractive $sudo_cmd apt-get install -y -qq --no-install-recommends \
+            python3-venv >/dev/null
+        rm -rf "$s3_env"
+        python3 -m venv "$s3_env"
+    fi
+    "$s3_env/bin/pip" install --quiet --disable-pip-version-check "moto[server]==$moto_version"
 fi

@@ -5,6 +5,7 @@
 //! through to the workers as the configuration types of `trainer-core`.
 
 pub mod config;
+pub mod health;
 pub mod job;
 pub mod local;
 pub mod metrics;

@@ -53,6 +53,14 @@ pub struct LocalJob {
     pub coordinator_metrics_port: Option<u16>,
     /// Ports of the workers' `/metrics` endpoints, by worker index; missing: no endpoint.
     pub worker_metrics_ports: Vec<u16>,
+    /// Where the generated dataset goes; `None`: `dir/data`. A URI such as `s3://bucket/data`
+    /// puts it in an object store.
+    pub data_uri: Option<String>,
+    /// Where checkpoints and `job.json` go; `None`: [`LocalJob::checkpoint_dir`].
+    pub checkpoint_uri: Option<String>,
+    /// Store settings as environment variables (`AWS_ENDPOINT`, `AWS_ALLOW_HTTP`, ...): given
+    /// to the coordinator and worker processes, and used by the harness's own store access.
+    pub store_env: Vec<(String, String)>,
 }
 
 impl LocalJob {
@@ -79,6 +87,9 @@ impl LocalJob {
             evaluate: false,
             coordinator_metrics_port: None,
             worker_metrics_ports: Vec::new(),
+            data_uri: None,
+            checkpoint_uri: None,
+            store_env: Vec::new(),
         }
     }
 
@@ -102,11 +113,34 @@ impl LocalJob {
         self.dir.join("checkpoints")
     }
 
-    /// Writes the generated dataset (unless in memory) and the cluster YAML.
+    /// Where the dataset is: [`LocalJob::data_uri`] or `dir/data`.
+    pub fn data_location(&self) -> String {
+        self.data_uri
+            .clone()
+            .unwrap_or_else(|| self.dir.join("data").display().to_string())
+    }
+
+    /// Where checkpoints go: [`LocalJob::checkpoint_uri`] or [`LocalJob::checkpoint_dir`].
+    pub fn checkpoint_location(&self) -> String {
+        self.checkpoint_uri
+            .clone()
+            .unwrap_or_else(|| self.checkpoint_dir().display().to_string())
+    }
+
+    /// Writes the generated dataset (unless in memory, or already there) and the cluster YAML.
     pub async fn prepare(&self) -> anyhow::Result<()> {
         std::fs::create_dir_all(&self.dir)?;
-        let data_dir = self.dir.join("data");
-        if !self.in_memory && !data_dir.exists() {
+        let data = self.data_location();
+        let root = if self.in_memory {
+            None
+        } else {
+            Some(DataRoot::create_with(&data, &self.store_env)?)
+        };
+        let empty = match &root {
+            Some(root) => root.list().await?.is_empty(),
+            None => false,
+        };
+        if let Some(root) = root.filter(|_| empty) {
             let scene = SceneConfig {
                 image_size: self.image_size,
                 ..SceneConfig::default()
@@ -118,17 +152,16 @@ impl LocalJob {
                 self.frames,
                 &scene,
             );
-            let root = DataRoot::create(&data_dir.display().to_string())?;
             let frames = dataset
                 .write_re10k(&root, Split::Train, scene.fov_degrees)
                 .await?;
-            tracing::info!(frames, dir = %data_dir.display(), "generated RE10K-layout dataset");
+            tracing::info!(frames, %data, "generated RE10K-layout dataset");
         }
-        std::fs::write(self.config_path(), self.yaml(&data_dir))?;
+        std::fs::write(self.config_path(), self.yaml(&data))?;
         Ok(())
     }
 
-    fn yaml(&self, data_dir: &Path) -> String {
+    fn yaml(&self, data: &str) -> String {
         let mut yaml = String::new();
         let _ = writeln!(yaml, "job: local-demo");
         let _ = writeln!(yaml, "seed: {}", self.seed);
@@ -149,8 +182,7 @@ impl LocalJob {
             let window = self.frames as u64;
             let _ = writeln!(
                 yaml,
-                "data:\n  datasets:\n    - kind: re10k\n      uri: {}\n      stage1: {{weight: 1, window_begin: 2, window_end: {window}}}\n      stage2: {{weight: 1, window_begin: 6, window_end: {window}}}",
-                data_dir.display()
+                "data:\n  datasets:\n    - kind: re10k\n      uri: {data}\n      stage1: {{weight: 1, window_begin: 2, window_end: {window}}}\n      stage2: {{weight: 1, window_begin: 6, window_end: {window}}}"
             );
         }
         for (stage, steps) in [(1, self.stage1_steps), (2, self.stage2_steps)] {
@@ -163,7 +195,7 @@ impl LocalJob {
         let _ = writeln!(
             yaml,
             "checkpoint:\n  uri: {}\n  every: {}",
-            self.checkpoint_dir().display(),
+            self.checkpoint_location(),
             self.checkpoint_every
         );
         if self.evaluate {
@@ -200,7 +232,11 @@ impl LocalJob {
                 .arg("--metrics-address")
                 .arg(format!("127.0.0.1:{port}"));
         }
-        Ok(command.stdout(Stdio::null()).stderr(log).spawn()?)
+        Ok(command
+            .envs(self.store_env.iter().map(|(key, value)| (key, value)))
+            .stdout(Stdio::null())
+            .stderr(log)
+            .spawn()?)
     }
 
     /// Starts worker process number `index` (its log goes to `worker-<index>.log`).
@@ -221,6 +257,7 @@ impl LocalJob {
             .arg(format!("local-{index}"))
             .arg("--scratch")
             .arg(self.dir.join("scratch"))
+            .envs(self.store_env.iter().map(|(key, value)| (key, value)))
             .stdout(Stdio::null())
             .stderr(log)
             .spawn()?)

@@ -195,3 +195,55 @@ fn the_dockerfile_is_well_formed_and_builds_the_readme_binaries() {
         );
     }
 }
+
+/// Every YAML document of a manifest file.
+fn documents(relative: &str) -> Vec<serde_norway::Value> {
+    use serde::Deserialize;
+    serde_norway::Deserializer::from_str(&read(relative))
+        .map(|document| {
+            serde_norway::Value::deserialize(document).unwrap_or_else(|e| panic!("{relative}: {e}"))
+        })
+        .collect()
+}
+
+#[test]
+fn kubernetes_probes_ask_grpc_health_on_the_serving_port() {
+    for (file, port_name, port) in [
+        ("deploy/k8s/coordinator.yaml", "grpc", 50051),
+        ("deploy/k8s/worker.yaml", "collective", 50052),
+    ] {
+        let workloads: Vec<serde_norway::Value> = documents(file)
+            .into_iter()
+            .filter(|d| d["kind"] == "Deployment" || d["kind"] == "Job")
+            .collect();
+        assert_eq!(workloads.len(), 1, "{file}: one workload");
+        let containers = workloads[0]["spec"]["template"]["spec"]["containers"]
+            .as_sequence()
+            .unwrap_or_else(|| panic!("{file}: no containers"));
+        for container in containers {
+            let declared = container["ports"]
+                .as_sequence()
+                .and_then(|ports| ports.iter().find(|p| p["name"] == port_name))
+                .and_then(|p| p["containerPort"].as_u64());
+            assert_eq!(declared, Some(port), "{file}: containerPort {port_name}");
+            for probe in ["startupProbe", "readinessProbe", "livenessProbe"] {
+                let grpc = &container[probe]["grpc"];
+                assert_eq!(
+                    grpc["port"].as_u64(),
+                    Some(port),
+                    "{file}: {probe} must be `grpc: {{port: {port}}}` (Kubernetes takes no port name there)"
+                );
+                for other in ["tcpSocket", "httpGet", "exec"] {
+                    assert!(
+                        container[probe].get(other).is_none(),
+                        "{file}: {probe} has {other} besides grpc"
+                    );
+                }
+            }
+        }
+    }
+    assert!(
+        read("deploy/k8s/worker.yaml").contains("0.0.0.0:50052"),
+        "the worker listens where its probes ask"
+    );
+}

@@ -9,7 +9,9 @@ use futures::TryStreamExt;
 use object_store::local::LocalFileSystem;
 use object_store::memory::InMemory;
 use object_store::path::Path;
-use object_store::{ObjectMeta, ObjectStore, ObjectStoreExt, PutPayload};
+use object_store::{
+    ObjectMeta, ObjectStore, ObjectStoreExt, PutMode, PutOptions, PutPayload, UpdateVersion,
+};
 
 /// How often a failed read is retried (cloud stores also retry inside object_store).
 const READ_ATTEMPTS: u32 = 3;
@@ -47,6 +49,28 @@ pub enum StoreError {
         #[source]
         source: Box<object_store::Error>,
     },
+    /// A conditional write was refused: the object exists although it was expected not to,
+    /// or it changed since the version the writer holds was read or written.
+    #[error("{uri}: `{path}` was changed by another writer since this one read or wrote it")]
+    Changed {
+        /// The root.
+        uri: String,
+        /// Object path relative to the root.
+        path: String,
+        /// The store's refusal, when the store checked the condition itself.
+        #[source]
+        source: Option<Box<object_store::Error>>,
+    },
+}
+
+/// The version of an object a conditional write expects to replace: the store's e-tag and,
+/// where it keeps versions, the version id.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct ObjectVersion {
+    /// HTTP entity tag (local disks derive one from inode, size and modification time).
+    pub e_tag: Option<String>,
+    /// Version id of versioned buckets.
+    pub version: Option<String>,
 }
 
 /// An object store and the prefix a dataset lives under.
@@ -71,6 +95,13 @@ pub struct Listed {
 impl DataRoot {
     /// Opens a root from a plain path or a URI.
     pub fn open(uri: &str) -> Result<Self, StoreError> {
+        Self::open_with(uri, &[])
+    }
+
+    /// Opens a root with store options on top of the environment's: `(key, value)` pairs named
+    /// like the variables (`AWS_ENDPOINT`, `AWS_ALLOW_HTTP`, ...). Lets one process (a test
+    /// harness) reach a store without changing its own environment.
+    pub fn open_with(uri: &str, options: &[(String, String)]) -> Result<Self, StoreError> {
         let open_error = |source: Box<dyn std::error::Error + Send + Sync>| StoreError::Open {
             uri: uri.to_string(),
             source,
@@ -95,15 +126,17 @@ impl DataRoot {
             let local = url
                 .to_file_path()
                 .map_err(|()| open_error("not a local file path".into()))?;
-            let mut root = Self::open(&local.to_string_lossy())?;
+            let mut root = Self::open_with(&local.to_string_lossy(), options)?;
             root.uri = uri.to_string();
             return Ok(root);
         }
-        let credentials = std::env::vars().filter(|(key, _)| {
-            ["AWS_", "GOOGLE_", "AZURE_"]
-                .iter()
-                .any(|prefix| key.starts_with(prefix))
-        });
+        let credentials = std::env::vars()
+            .filter(|(key, _)| {
+                ["AWS_", "GOOGLE_", "AZURE_"]
+                    .iter()
+                    .any(|prefix| key.starts_with(prefix))
+            })
+            .chain(options.iter().cloned());
         let (store, prefix) =
             object_store::parse_url_opts(&url, credentials).map_err(|e| open_error(e.into()))?;
         Ok(Self {
@@ -116,6 +149,11 @@ impl DataRoot {
     /// Opens a root to write into (checkpoints, generated data): a local directory is created
     /// first; object-store prefixes need no creating.
     pub fn create(uri: &str) -> Result<Self, StoreError> {
+        Self::create_with(uri, &[])
+    }
+
+    /// [`DataRoot::create`] with store options, as [`DataRoot::open_with`].
+    pub fn create_with(uri: &str, options: &[(String, String)]) -> Result<Self, StoreError> {
         let local = if uri.contains("://") {
             url::Url::parse(uri)
                 .ok()
@@ -130,7 +168,7 @@ impl DataRoot {
                 source: Box::new(e),
             })?;
         }
-        Self::open(uri)
+        Self::open_with(uri, options)
     }
 
     /// A root over an existing store (the in-memory store of tests).
@@ -227,6 +265,93 @@ impl DataRoot {
                     tokio::time::sleep(Duration::from_millis(100 << attempt)).await;
                 }
             }
+        }
+    }
+
+    /// The object at `relative` with the version a later [`DataRoot::write_if`] must name.
+    pub async fn read_versioned(
+        &self,
+        relative: &str,
+    ) -> Result<(Vec<u8>, ObjectVersion), StoreError> {
+        let location = self.absolute(relative);
+        let result = async {
+            let got = self.store.get(&location).await?;
+            let version = ObjectVersion {
+                e_tag: got.meta.e_tag.clone(),
+                version: got.meta.version.clone(),
+            };
+            Ok((got.bytes().await?.to_vec(), version))
+        }
+        .await;
+        result.map_err(|error| match error {
+            object_store::Error::NotFound { .. } => StoreError::NotFound {
+                uri: self.uri.clone(),
+                path: relative.to_string(),
+            },
+            error => self.io_error("read", relative, error),
+        })
+    }
+
+    /// Writes `bytes` at `relative` only if the object is still as the writer last saw it:
+    /// absent when `expected` is `None`, at that version otherwise. Returns the new version.
+    /// A refusal is [`StoreError::Changed`], so two writers of one object (two coordinators
+    /// on one checkpoint URI) cannot silently overwrite each other.
+    ///
+    /// S3 (`If-Match`/`If-None-Match`), GCS, Azure and the in-memory store check the condition
+    /// themselves. object_store's local file system cannot replace an object conditionally, so
+    /// there the current e-tag is compared first and the file then replaced by an atomic
+    /// rename: a writer racing inside that window is not caught, which on one host's disk
+    /// means two coordinators started at the same instant.
+    pub async fn write_if(
+        &self,
+        relative: &str,
+        bytes: Vec<u8>,
+        expected: Option<&ObjectVersion>,
+    ) -> Result<ObjectVersion, StoreError> {
+        let location = self.absolute(relative);
+        let changed = |source: Option<object_store::Error>| StoreError::Changed {
+            uri: self.uri.clone(),
+            path: relative.to_string(),
+            source: source.map(Box::new),
+        };
+        let mode = match expected {
+            None => PutMode::Create,
+            Some(version) => PutMode::Update(UpdateVersion {
+                e_tag: version.e_tag.clone(),
+                version: version.version.clone(),
+            }),
+        };
+        let payload = PutPayload::from(bytes);
+        let put = self
+            .store
+            .put_opts(&location, payload.clone(), mode.into())
+            .await;
+        let result = match (put, expected) {
+            (Err(object_store::Error::NotImplemented { .. }), Some(version)) => {
+                let current = match self.store.head(&location).await {
+                    Ok(meta) => meta,
+                    Err(object_store::Error::NotFound { .. }) => return Err(changed(None)),
+                    Err(error) => return Err(self.io_error("write", relative, error)),
+                };
+                if current.e_tag != version.e_tag {
+                    return Err(changed(None));
+                }
+                self.store
+                    .put_opts(&location, payload, PutOptions::default())
+                    .await
+            }
+            (put, _) => put,
+        };
+        match result {
+            Ok(put) => Ok(ObjectVersion {
+                e_tag: put.e_tag,
+                version: put.version,
+            }),
+            Err(
+                error @ (object_store::Error::AlreadyExists { .. }
+                | object_store::Error::Precondition { .. }),
+            ) => Err(changed(Some(error))),
+            Err(error) => Err(self.io_error("write", relative, error)),
         }
     }
 

@@ -10,6 +10,7 @@ use trainer_core::checkpoint::CheckpointError;
 use crate::figures::FigureError;
 use crate::metrics::ImageMetricError;
 use crate::oracle::OracleError;
+use crate::video::VideoError;
 
 /// Why a transfer or an evaluation failed.
 #[derive(Debug, thiserror::Error)]
@@ -23,6 +24,9 @@ pub enum EvalError {
     /// A frame could not be decoded.
     #[error(transparent)]
     Decode(#[from] DecodeError),
+    /// A video could not be decoded or written.
+    #[error(transparent)]
+    Video(#[from] VideoError),
     /// A figure could not be written.
     #[error(transparent)]
     Figure(#[from] FigureError),

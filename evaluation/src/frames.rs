@@ -13,7 +13,8 @@ use crate::error::{EvalError, io_error};
 /// File name endings read as frames.
 const FRAME_EXTENSIONS: [&str; 3] = [".jpg", ".jpeg", ".png"];
 
-fn is_frame(name: &str) -> bool {
+/// Whether `name` ends like an image file (`.jpg`, `.jpeg`, `.png`, any case).
+pub(crate) fn is_frame(name: &str) -> bool {
     let lower = name.to_ascii_lowercase();
     FRAME_EXTENSIONS.iter().any(|ext| lower.ends_with(ext))
 }

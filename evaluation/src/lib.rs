@@ -11,9 +11,11 @@ pub mod inference;
 pub mod metrics;
 pub mod oracle;
 pub mod transfer;
+pub mod video;
 
 pub use error::EvalError;
-pub use transfer::{TransferOutput, TransferRequest, run_transfer};
+pub use transfer::{TransferOutput, TransferRequest, run_transfer, run_transfer_sampled};
+pub use video::Sampling;
 pub mod evaluate;
 pub mod probe;
 pub mod tps;

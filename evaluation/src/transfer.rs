@@ -1,6 +1,6 @@
 //! The `transfer` command's work: load a checkpoint, a trajectory video and a scene, render the
 //! scene along the trajectory's motion, and write the frames as PNG, a strip comparing the
-//! trajectory with the renders, and an animated GIF.
+//! trajectory with the renders, an animated GIF and an MP4 (see `video`).
 
 use std::path::{Path, PathBuf};
 
@@ -11,8 +11,10 @@ use trainer_core::checkpoint;
 
 use crate::error::{EvalError, io_error};
 use crate::figures::{save_gif, save_grid, save_png};
-use crate::frames::load_frames;
 use crate::inference::transfer;
+use crate::video::{
+    DEFAULT_VIDEO_FRAMES, Sampling, evenly_spaced, load_source, write_transfer_video,
+};
 
 /// Columns of the comparison strip (evenly spaced frames of the trajectory).
 const STRIP_COLUMNS: usize = 8;
@@ -24,7 +26,8 @@ const GIF_DELAY_MS: u32 = 100;
 pub struct TransferRequest {
     /// Model weights (`.safetensors` with its `.json` configuration beside it).
     pub checkpoint: PathBuf,
-    /// The video whose camera motion is taken: a frame directory or object-store prefix.
+    /// The video whose camera motion is taken: a video file, a frame directory or an
+    /// object-store prefix.
     pub trajectory: String,
     /// The scene to move through: one image (stereo model) or a short video (multi-view model:
     /// every frame becomes a context view, the first the reference).
@@ -44,16 +47,8 @@ pub struct TransferOutput {
     pub strip: PathBuf,
     /// The renders as a looping animation.
     pub gif: PathBuf,
-}
-
-/// Every `len / columns`-th index, evenly spread and including the first and last.
-fn evenly_spaced(len: usize, columns: usize) -> Vec<usize> {
-    if len <= columns {
-        return (0..len).collect();
-    }
-    (0..columns)
-        .map(|k| k * (len - 1) / (columns - 1))
-        .collect()
+    /// The renders as an MP4; `None` where ffmpeg is not installed.
+    pub video: Option<PathBuf>,
 }
 
 /// Writes `renders` (and a comparison with `trajectory`) under `out_dir`.
@@ -81,20 +76,42 @@ pub fn write_transfer(
     )?;
     let gif = out_dir.join("transfer.gif");
     save_gif(renders, &gif, GIF_DELAY_MS)?;
-    Ok(TransferOutput { frames, strip, gif })
+    let video = write_transfer_video(renders, out_dir)?;
+    Ok(TransferOutput {
+        frames,
+        strip,
+        gif,
+        video,
+    })
 }
 
-/// Runs a whole transfer on `device`.
+/// Runs a whole transfer on `device`, with the inputs' frames as [`Sampling::default`] takes
+/// them.
 pub fn run_transfer(
     request: &TransferRequest,
+    device: &Device,
+) -> Result<TransferOutput, EvalError> {
+    run_transfer_sampled(request, &Sampling::default(), device)
+}
+
+/// Runs a whole transfer on `device`, taking as many frames of each input as `sampling` says.
+pub fn run_transfer_sampled(
+    request: &TransferRequest,
+    sampling: &Sampling,
     device: &Device,
 ) -> Result<TransferOutput, EvalError> {
     let _span =
         tracing::info_span!("transfer", trajectory = %request.trajectory, scene = %request.scene)
             .entered();
     let (model, config) = checkpoint::load(&request.checkpoint, device)?;
-    let trajectory = load_frames(&request.trajectory, config.image_size)?;
-    let scene = load_frames(&request.scene, config.image_size)?;
+    let size = config.image_size;
+    let trajectory = load_source(
+        &request.trajectory,
+        size,
+        sampling.frames,
+        DEFAULT_VIDEO_FRAMES,
+    )?;
+    let scene = load_source(&request.scene, size, sampling.scene_frames, 1)?;
     tracing::info!(
         frames = trajectory.len(),
         context_views = scene.len(),
@@ -103,15 +120,4 @@ pub fn run_transfer(
     );
     let renders = transfer(&model, &trajectory, request.reference, &scene, device)?;
     write_transfer(&trajectory, &renders, &request.out_dir)
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn strip_columns_span_the_video() {
-        assert_eq!(evenly_spaced(30, 8), vec![0, 4, 8, 12, 16, 20, 24, 29]);
-        assert_eq!(evenly_spaced(3, 8), vec![0, 1, 2]);
-    }
 }

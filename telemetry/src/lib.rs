@@ -1,11 +1,12 @@
 //! `telemetry`: how the coordinator and the workers tell operators what they are doing.
 //!
-//! Prometheus series in a [`metrics::Registry`], served as text on `/metrics` by
+//! Prometheus series (gauges, counters, histograms) in a [`metrics::Registry`], served as text on `/metrics` by
 //! [`http::serve`], and loss curves written as CSV and drawn to PNG by [`curves`]. It knows
 //! nothing about the model or the job protocol: callers name their series.
 
 pub mod cli;
 pub mod curves;
+pub mod histogram;
 pub mod http;
 pub mod metrics;
 pub mod training;

@@ -1,29 +1,35 @@
-//! A small Prometheus registry: gauges and counters with labels, rendered in the text
-//! exposition format (version 0.0.4). Hand-written because the processes export a few dozen
+//! A small Prometheus registry: gauges, counters and histograms with labels, rendered in the
+//! text exposition format (version 0.0.4). Hand-written because the processes export a few dozen
 //! series and a client library would add a dependency tree for no gain.
 
 use std::collections::BTreeMap;
 use std::fmt::Write;
 use std::sync::{Mutex, PoisonError};
 
-/// Whether a series can go down (gauge) or only up (counter).
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+use crate::histogram::Histogram;
+
+/// Whether a series can go down (gauge), only up (counter), or counts observations into
+/// buckets (histogram).
+#[derive(Debug, Clone, Copy, PartialEq)]
 pub enum Kind {
     /// A value that is set: step, loss, learning rate.
     Gauge,
     /// A running total: heartbeats, restarts, skipped frames.
     Counter,
+    /// A distribution of observations: step and all-reduce durations. The bounds are the
+    /// buckets' upper limits, increasing; `+Inf` is implied.
+    Histogram(&'static [f64]),
 }
 
 /// A series family: its name, help text and kind. Declared as constants by the processes that
 /// export them, so the name is spelled once.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Metric {
     /// Prometheus name, e.g. `xfactor_step`.
     pub name: &'static str,
     /// One line for `# HELP`.
     pub help: &'static str,
-    /// Gauge or counter.
+    /// Gauge, counter or histogram.
     pub kind: Kind,
 }
 
@@ -45,11 +51,27 @@ impl Metric {
             kind: Kind::Counter,
         }
     }
+
+    /// A histogram family with buckets at `bounds` (increasing; e.g.
+    /// [`crate::histogram::SECONDS_BUCKETS`]).
+    pub const fn histogram(name: &'static str, help: &'static str, bounds: &'static [f64]) -> Self {
+        Self {
+            name,
+            help,
+            kind: Kind::Histogram(bounds),
+        }
+    }
+}
+
+/// One labelled series: a gauge's or counter's value, or a histogram's buckets.
+enum Series {
+    Value(f64),
+    Histogram(Histogram),
 }
 
 struct Family {
     metric: Metric,
-    series: BTreeMap<String, f64>,
+    series: BTreeMap<String, Series>,
 }
 
 /// The current value of every series a process exports. Cheap to update from any thread.
@@ -64,13 +86,47 @@ impl Registry {
         Self::default()
     }
 
-    fn update(&self, metric: &Metric, labels: &[(&str, &str)], apply: impl FnOnce(&mut f64)) {
+    fn series<R>(
+        &self,
+        metric: &Metric,
+        labels: &[(&str, &str)],
+        apply: impl FnOnce(&mut Series) -> R,
+    ) -> R {
         let mut families = self.families.lock().unwrap_or_else(PoisonError::into_inner);
         let family = families.entry(metric.name).or_insert_with(|| Family {
             metric: *metric,
             series: BTreeMap::new(),
         });
-        apply(family.series.entry(render_labels(labels)).or_insert(0.0));
+        let series = family
+            .series
+            .entry(render_labels(labels))
+            .or_insert_with(|| match metric.kind {
+                Kind::Histogram(bounds) => Series::Histogram(Histogram::new(bounds)),
+                Kind::Gauge | Kind::Counter => Series::Value(0.0),
+            });
+        apply(series)
+    }
+
+    /// Applies `apply` to a gauge's or counter's value; a histogram is left alone (a caller
+    /// mixing up kinds must not corrupt it).
+    fn update(&self, metric: &Metric, labels: &[(&str, &str)], apply: impl FnOnce(&mut f64)) {
+        self.series(metric, labels, |series| {
+            if let Series::Value(value) = series {
+                apply(value);
+            }
+        });
+    }
+
+    /// Counts `value` (seconds, for the duration histograms) into a histogram's buckets; a
+    /// gauge or counter is left alone.
+    pub fn observe(&self, metric: &Metric, labels: &[(&str, &str)], value: f64) {
+        if let Kind::Histogram(bounds) = metric.kind {
+            self.series(metric, labels, |series| {
+                if let Series::Histogram(histogram) = series {
+                    histogram.observe(bounds, value);
+                }
+            });
+        }
     }
 
     /// Sets a gauge.
@@ -93,9 +149,12 @@ impl Registry {
     #[cfg(test)]
     fn value(&self, metric: &Metric, labels: &[(&str, &str)]) -> Option<f64> {
         let families = self.families.lock().unwrap_or_else(PoisonError::into_inner);
-        families
-            .get(metric.name)
-            .and_then(|family| family.series.get(&render_labels(labels)).copied())
+        families.get(metric.name).and_then(|family| {
+            match family.series.get(&render_labels(labels)) {
+                Some(Series::Value(value)) => Some(*value),
+                _ => None,
+            }
+        })
     }
 
     /// Drops the series of `metric` whose `label` value fails `keep`: a process that labels
@@ -119,19 +178,24 @@ impl Registry {
         let families = self.families.lock().unwrap_or_else(PoisonError::into_inner);
         let mut text = String::new();
         for family in families.values() {
+            let name = family.metric.name;
             let kind = match family.metric.kind {
                 Kind::Gauge => "gauge",
                 Kind::Counter => "counter",
+                Kind::Histogram(_) => "histogram",
             };
-            let _ = writeln!(text, "# HELP {} {}", family.metric.name, family.metric.help);
-            let _ = writeln!(text, "# TYPE {} {kind}", family.metric.name);
-            for (labels, value) in &family.series {
-                let _ = writeln!(
-                    text,
-                    "{}{labels} {}",
-                    family.metric.name,
-                    format_value(*value)
-                );
+            let _ = writeln!(text, "# HELP {name} {}", family.metric.help);
+            let _ = writeln!(text, "# TYPE {name} {kind}");
+            for (labels, series) in &family.series {
+                match (series, family.metric.kind) {
+                    (Series::Value(value), _) => {
+                        let _ = writeln!(text, "{name}{labels} {}", format_value(*value));
+                    }
+                    (Series::Histogram(histogram), Kind::Histogram(bounds)) => {
+                        histogram.render(&mut text, name, labels, bounds);
+                    }
+                    (Series::Histogram(_), _) => {}
+                }
             }
         }
         text
@@ -155,7 +219,8 @@ fn render_labels(labels: &[(&str, &str)]) -> String {
     format!("{{{}}}", pairs.join(","))
 }
 
-fn format_value(value: f64) -> String {
+/// A sample value or `le` bound as Prometheus writes it (`NaN`, `+Inf`, shortest decimal).
+pub(crate) fn format_value(value: f64) -> String {
     if value.is_nan() {
         "NaN".into()
     } else if value.is_infinite() {
@@ -213,6 +278,32 @@ mod tests {
             "{text}"
         );
         assert!(text.contains("xfactor_step 5\n"), "{text}");
+    }
+
+    #[test]
+    fn histograms_render_cumulative_buckets_sum_and_count() {
+        const WAIT: Metric = Metric::histogram("xfactor_wait_seconds", "Waits.", &[0.5, 2.0]);
+        let registry = Registry::new();
+        for value in [0.25, 1.0, 1.5, 9.0] {
+            registry.observe(&WAIT, &[], value);
+        }
+        registry.set(&WAIT, &[], 100.0);
+        registry.observe(&STEP, &[], 1.0);
+        let text = registry.render();
+        assert!(
+            text.contains("# TYPE xfactor_wait_seconds histogram\n"),
+            "{text}"
+        );
+        for line in [
+            "xfactor_wait_seconds_bucket{le=\"0.5\"} 1\n",
+            "xfactor_wait_seconds_bucket{le=\"2\"} 3\n",
+            "xfactor_wait_seconds_bucket{le=\"+Inf\"} 4\n",
+            "xfactor_wait_seconds_sum 11.75\n",
+            "xfactor_wait_seconds_count 4\n",
+        ] {
+            assert!(text.contains(line), "{line} missing from {text}");
+        }
+        assert!(!text.contains("xfactor_step"), "{text}");
     }
 
     #[test]

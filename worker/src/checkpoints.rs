@@ -92,7 +92,12 @@ pub fn commit(
     request: CommitRequest<'_>,
 ) -> anyhow::Result<()> {
     let location = request.location;
+    let started = std::time::Instant::now();
     runtime.block_on(upload(request.dir, &location, request.phase, request.step))?;
+    let upload_s = started.elapsed().as_secs_f64();
+    progress
+        .metrics
+        .observe(&crate::metrics::CHECKPOINT_UPLOAD, &[], upload_s);
     let ack = runtime
         .block_on(client.commit_checkpoint(CheckpointCommit {
             worker_id: progress.worker_id(),

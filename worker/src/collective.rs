@@ -210,7 +210,8 @@ impl CollectiveService {
 }
 
 /// Serves `service` on `listener` behind the job-token check (and TLS when `link` has it),
-/// with flow-control windows sized for megabyte chunks. Runs until the process ends.
+/// with flow-control windows sized for megabyte chunks, and `grpc.health.v1` beside it
+/// without the check. Runs until the process ends.
 pub fn spawn_server(
     listener: tokio::net::TcpListener,
     service: CollectiveService,
@@ -227,15 +228,19 @@ pub fn spawn_server(
             .tls_config(tls.server.clone())
             .map_err(|e| CollectiveError::Tls(e.to_string()))?;
     }
-    tokio::spawn(
+    tokio::spawn(async move {
+        // Beside the token-checked service, not behind it: probes carry no token.
+        let health = crate::health::collective_health().await;
         builder
             .initial_stream_window_size(Some(16 * 1024 * 1024))
             .initial_connection_window_size(Some(32 * 1024 * 1024))
             .max_frame_size(Some(1024 * 1024))
             .tcp_nodelay(true)
             .add_service(server)
-            .serve_with_incoming(tokio_stream::wrappers::TcpListenerStream::new(listener)),
-    );
+            .add_service(health)
+            .serve_with_incoming(tokio_stream::wrappers::TcpListenerStream::new(listener))
+            .await
+    });
     Ok(())
 }
 

@@ -11,6 +11,7 @@ pub mod collective;
 pub mod daemon;
 pub mod device;
 pub mod evaluate;
+pub mod health;
 pub mod metrics;
 pub mod session;
 pub mod shutdown;

@@ -1,8 +1,14 @@
 //! The worker's Prometheus series: its own view of each step (loss, learning rate,
 //! throughput, all-reduce time and bandwidth, loader queue) and of its link to the coordinator
-//! (heartbeats). Scraped from `/metrics` (see the `telemetry` crate).
+//! (heartbeats), and histograms of step, all-reduce, data-wait and checkpoint-upload times.
+//! Scraped from `/metrics` (see the `telemetry` crate).
 
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::time::Instant;
+
+use data::{BatchSource, Samples};
 use telemetry::Metric;
+use telemetry::histogram::SECONDS_BUCKETS;
 pub use telemetry::training::{GENERATION, GRAD_NORM, LEARNING_RATE, LOSS, STAGE, STEP};
 
 /// Rank in the group.
@@ -50,3 +56,60 @@ pub const RESTARTS: Metric = Metric::counter(
     "xfactor_restarts_total",
     "Generations this worker left early (lost peer, cancelled, failed).",
 );
+/// Distribution of step wall times (the gauge above keeps only the last).
+pub const STEP_DURATION: Metric = Metric::histogram(
+    "xfactor_step_duration_seconds",
+    "Wall time of each training step.",
+    SECONDS_BUCKETS,
+);
+/// Distribution of all-reduce times.
+pub const ALLREDUCE_DURATION: Metric = Metric::histogram(
+    "xfactor_allreduce_duration_seconds",
+    "Seconds each step spent in the gradient all-reduce.",
+    SECONDS_BUCKETS,
+);
+/// Time the trainer waited on the data loader.
+pub const DATA_WAIT: Metric = Metric::histogram(
+    "xfactor_data_wait_seconds",
+    "Seconds each step waited for micro-batches from the data loader.",
+    SECONDS_BUCKETS,
+);
+/// Checkpoint upload time.
+pub const CHECKPOINT_UPLOAD: Metric = Metric::histogram(
+    "xfactor_checkpoint_upload_seconds",
+    "Seconds each checkpoint took to upload to the object store, COMMIT.json included.",
+    SECONDS_BUCKETS,
+);
+
+/// A [`BatchSource`] that adds the time its caller spends waiting in `samples` to a running
+/// total: wrapped around the loader, it measures how long the trainer waits for data (zero
+/// when the prefetch queue keeps ahead).
+pub struct Timed<'a, S> {
+    inner: &'a S,
+    waited_ns: AtomicU64,
+}
+
+impl<'a, S: BatchSource> Timed<'a, S> {
+    /// Wraps `inner` with the total at zero.
+    pub fn new(inner: &'a S) -> Self {
+        Self {
+            inner,
+            waited_ns: AtomicU64::new(0),
+        }
+    }
+
+    /// Seconds spent waiting since the last call, and the total reset to zero.
+    pub fn take_seconds(&self) -> f64 {
+        self.waited_ns.swap(0, Ordering::Relaxed) as f64 * 1e-9
+    }
+}
+
+impl<S: BatchSource> BatchSource for Timed<'_, S> {
+    fn samples(&self, step: u64, first_sample: u64, count: usize) -> Result<Samples, String> {
+        let started = Instant::now();
+        let samples = self.inner.samples(step, first_sample, count);
+        let waited = u64::try_from(started.elapsed().as_nanos()).unwrap_or(u64::MAX);
+        self.waited_ns.fetch_add(waited, Ordering::Relaxed);
+        samples
+    }
+}

@@ -120,6 +120,7 @@ pub fn train_generation(
     };
     let micro_batches_per_step = count.div_ceil(train.micro_batch.max(1));
     let source = Prefetched::new(rank_source, schedule, 2 * micro_batches_per_step, 1);
+    let timed = metrics::Timed::new(&source);
     let mut ring = runtime.block_on(Ring::connect(
         mailbox,
         rank,
@@ -145,7 +146,7 @@ pub fn train_generation(
         let started = Instant::now();
         progress.doing(Activity::Computing);
         let (loss, grads) = trainer
-            .slice_gradients(&source, first, count)
+            .slice_gradients(&timed, first, count)
             .with_context(|| format!("gradients of step {step}"))?;
         let mut flat = flatten_gradients(trainer.model(), &grads);
         flat.push(loss);
@@ -184,6 +185,9 @@ pub fn train_generation(
             count as f64 / elapsed.max(1e-9),
         );
         registry.set(&metrics::ALLREDUCE_SECONDS, &[], reduce.seconds);
+        registry.observe(&metrics::STEP_DURATION, &[], elapsed);
+        registry.observe(&metrics::ALLREDUCE_DURATION, &[], reduce.seconds);
+        registry.observe(&metrics::DATA_WAIT, &[], timed.take_seconds());
         if reduce.seconds > 0.0 {
             let bytes = (flat.len() * std::mem::size_of::<f32>()) as f64;
             registry.set(&metrics::ALLREDUCE_BANDWIDTH, &[], bytes / reduce.seconds);

@@ -7,7 +7,7 @@ use std::path::Path;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use data::store::{DataRoot, StoreError};
+use data::store::{DataRoot, ObjectVersion, StoreError};
 use proto::v1::coordinator_server::CoordinatorServer;
 use settings::Phase;
 use telemetry::Registry;
@@ -15,6 +15,7 @@ use tokio::sync::{Mutex, Notify};
 use tokio_util::sync::CancellationToken;
 use tonic::service::interceptor::InterceptedService;
 
+use crate::health::JobHealth;
 use crate::job::{JobState, Report, Timing};
 use crate::metrics;
 use crate::plan::Plan;
@@ -33,6 +34,8 @@ pub struct CoordinatorService {
     checkpoints: DataRoot,
     heartbeat_interval_s: f64,
     metrics: Arc<Registry>,
+    /// The version of `job.json` this coordinator last read or wrote (see `store::write_durable`).
+    durable_version: Arc<Mutex<Option<ObjectVersion>>>,
 }
 
 /// Why a job could not run.
@@ -102,7 +105,9 @@ impl CoordinatorService {
         let config = &plan.config;
         let checkpoints =
             DataRoot::create(&config.checkpoint.uri.0).map_err(ServeError::OpenStore)?;
-        let durable = store::read_durable(&checkpoints, &config.job.0).await?;
+        let (durable, durable_version) = store::read_durable(&checkpoints, &config.job.0)
+            .await?
+            .unzip();
         if let Some(durable) = &durable {
             tracing::info!(phase = %durable.phase, last_commit = ?durable.last_commit, "resuming the job from its checkpoint store");
         }
@@ -122,6 +127,7 @@ impl CoordinatorService {
             checkpoints,
             heartbeat_interval_s,
             metrics: Arc::new(Registry::new()),
+            durable_version: Arc::new(Mutex::new(durable_version)),
         })
     }
 
@@ -153,14 +159,9 @@ impl CoordinatorService {
             }
             state.durable().clone()
         };
-        let written = match serde_json::to_vec_pretty(&durable) {
-            Ok(json) => self
-                .checkpoints
-                .write(store::DURABLE_OBJECT, json)
-                .await
-                .map_err(|e| store::chain(&e)),
-            Err(e) => Err(e.to_string()),
-        };
+        let written = store::write_durable(&self.checkpoints, &durable, &self.durable_version)
+            .await
+            .map_err(|e| store::chain(&e));
         if let Err(error) = written {
             tracing::warn!(%error, "the failed job's state was not written to job.json");
         }
@@ -224,14 +225,18 @@ impl CoordinatorService {
         }
         let finished = Arc::new(Notify::new());
         let stop_server = finished.clone();
+        // Outside the token interceptor: probes carry no token.
+        let (health, health_server) = JobHealth::new().await;
         let serve = tokio::spawn(
             builder
                 .add_service(server)
+                .add_service(health_server)
                 .serve_with_shutdown(address, async move { stop_server.notified().await }),
         );
         tracing::info!(%address, "coordinator listening");
         let ticker = {
             let service = self.clone();
+            let health = health.clone();
             async move {
                 let mut phase = service.state.lock().await.phase();
                 loop {
@@ -252,6 +257,7 @@ impl CoordinatorService {
                     }
                     phase = phase.max(now_phase);
                     if done {
+                        health.job_ending().await;
                         // Let every worker collect its FINISH before the server goes.
                         tokio::time::sleep(Duration::from_secs_f64(
                             (service.heartbeat_interval_s * 4.0).max(1.0),
@@ -268,6 +274,8 @@ impl CoordinatorService {
         }
         self.stopping.cancel();
         self.record_failure().await;
+        health.job_ending().await;
+        health.close().await;
         finished.notify_one();
         serve
             .await

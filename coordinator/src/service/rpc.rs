@@ -16,7 +16,7 @@ use tonic::{Request, Response, Status};
 use tracing::Instrument;
 
 use super::CoordinatorService;
-use super::store::{DURABLE_OBJECT, chain, verify};
+use super::store::{DurableWriteError, chain, verify, write_durable};
 use crate::job::{Commit, Refusal};
 use crate::metrics;
 
@@ -259,13 +259,15 @@ impl CoordinatorService {
             self.metrics.add(&metrics::COMMITS, &[], 1.0);
             state.durable().clone()
         };
-        let json =
-            serde_json::to_vec_pretty(&durable).map_err(|e| Status::internal(e.to_string()))?;
-        self.checkpoints
-            .write(DURABLE_OBJECT, json)
+        write_durable(&self.checkpoints, &durable, &self.durable_version)
             .await
             .map_err(|e| {
-                Status::unavailable(format!("recording the commit failed: {}", chain(&e)))
+                let message = format!("recording the commit failed: {}", chain(&e));
+                tracing::error!(%message);
+                match e {
+                    DurableWriteError::Stale { .. } => Status::failed_precondition(message),
+                    _ => Status::unavailable(message),
+                }
             })?;
         self.changed.notify_waiters();
         Ok(Response::new(CommitAck {

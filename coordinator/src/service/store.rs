@@ -1,8 +1,9 @@
 //! The coordinator's side of the checkpoint store: the job state (`job.json`), verification of
 //! committed checkpoints against their manifest, and the loss curves.
 
-use data::store::{DataRoot, StoreError};
+use data::store::{DataRoot, ObjectVersion, StoreError};
 use settings::commit::{CommitManifest, MANIFEST_NAME, ManifestError};
+use tokio::sync::Mutex;
 
 use super::ServeError;
 use crate::job::Durable;
@@ -10,16 +11,17 @@ use crate::job::Durable;
 /// Name of the job-state object under the checkpoint URI.
 pub const DURABLE_OBJECT: &str = "job.json";
 
-/// Reads the job state a previous coordinator left. Only a missing `job.json` means a new
-/// job: a store that cannot be read, or a file that is not a job state, stops the start, so a
-/// committed result is never orphaned by starting over.
+/// Reads the job state a previous coordinator left, with the version [`write_durable`] must
+/// name to replace it. Only a missing `job.json` means a new job: a store that cannot be read,
+/// or a file that is not a job state, stops the start, so a committed result is never
+/// orphaned by starting over.
 pub async fn read_durable(
     checkpoints: &DataRoot,
     job: &str,
-) -> Result<Option<Durable>, ServeError> {
+) -> Result<Option<(Durable, ObjectVersion)>, ServeError> {
     let uri = checkpoints.uri().to_string();
-    let bytes = match checkpoints.read(DURABLE_OBJECT).await {
-        Ok(bytes) => bytes,
+    let (bytes, version) = match checkpoints.read_versioned(DURABLE_OBJECT).await {
+        Ok(read) => read,
         Err(StoreError::NotFound { .. }) => return Ok(None),
         Err(source) => return Err(ServeError::ReadState { uri, source }),
     };
@@ -35,7 +37,59 @@ pub async fn read_durable(
             expected: job.to_string(),
         });
     }
-    Ok(Some(durable))
+    Ok(Some((durable, version)))
+}
+
+/// Why `job.json` was not written.
+#[derive(Debug, thiserror::Error)]
+pub enum DurableWriteError {
+    /// Another writer replaced or created `job.json` after this coordinator last read or wrote
+    /// it: most likely a second coordinator runs on the same checkpoint URI.
+    #[error(
+        "{uri}/{DURABLE_OBJECT} was changed by another writer since this coordinator last read or wrote it; not overwritten (is a second coordinator using this checkpoint.uri?)"
+    )]
+    Stale {
+        /// The checkpoint URI.
+        uri: String,
+        /// The store's refusal.
+        #[source]
+        source: StoreError,
+    },
+    /// The store could not be written.
+    #[error("{uri}/{DURABLE_OBJECT} could not be written")]
+    Store {
+        /// The checkpoint URI.
+        uri: String,
+        /// What failed.
+        #[source]
+        source: StoreError,
+    },
+    /// The state did not serialise (not expected of plain data).
+    #[error("the job state does not serialise")]
+    Encode(#[source] serde_json::Error),
+}
+
+/// Writes `durable` as `job.json`, on the condition that the object is still the version in
+/// `version` (absent when `None`), and records the new version there. The lock is held across
+/// the write, so this process's writes are ordered; another process's write in between makes
+/// this one fail with [`DurableWriteError::Stale`] instead of silently replacing it.
+pub async fn write_durable(
+    checkpoints: &DataRoot,
+    durable: &Durable,
+    version: &Mutex<Option<ObjectVersion>>,
+) -> Result<(), DurableWriteError> {
+    let json = serde_json::to_vec_pretty(durable).map_err(DurableWriteError::Encode)?;
+    let mut held = version.lock().await;
+    let uri = checkpoints.uri().to_string();
+    let written = checkpoints
+        .write_if(DURABLE_OBJECT, json, held.as_ref())
+        .await
+        .map_err(|source| match source {
+            StoreError::Changed { .. } => DurableWriteError::Stale { uri, source },
+            source => DurableWriteError::Store { uri, source },
+        })?;
+    *held = Some(written);
+    Ok(())
 }
 
 /// Why a commit was refused after checking the store.

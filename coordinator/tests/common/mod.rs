@@ -1,9 +1,12 @@
 //! The harness the process tests share: a local job's coordinator and workers as real
-//! processes on loopback, with helpers to wait for commits, signal processes and read reports.
+//! processes on loopback, helpers to wait for commits, signal processes and read reports, and
+//! moto's S3 server on loopback for the S3 tests.
 #![allow(dead_code)] // each test binary compiles this module; not all of them use every helper
 
+use std::io::{Read, Write};
+use std::net::TcpStream;
 use std::path::{Path, PathBuf};
-use std::process::Child;
+use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
 use coordinator::local::{LocalJob, free_port};
@@ -169,4 +172,127 @@ pub fn last_committed(checkpoints: &Path) -> String {
         .as_str()
         .unwrap_or_else(|| panic!("no last commit in {durable}"))
         .to_string()
+}
+
+/// moto's S3 server as a child process on a loopback port, killed on drop.
+pub struct Moto {
+    child: Child,
+    /// `http://127.0.0.1:PORT`.
+    pub endpoint: String,
+    port: u16,
+    log: PathBuf,
+}
+
+/// How long moto may take to answer after starting (it imports Flask and boto; about 2 s on
+/// the 2-core CI machine).
+const MOTO_START_LIMIT: Duration = Duration::from_secs(60);
+
+impl Moto {
+    /// Where `scripts/setup.sh` installs `moto_server`, or `$XFACTOR_MOTO_SERVER`.
+    pub fn program() -> PathBuf {
+        if let Some(program) = std::env::var_os("XFACTOR_MOTO_SERVER") {
+            return PathBuf::from(program);
+        }
+        let cache = std::env::var_os("XDG_CACHE_HOME")
+            .map(PathBuf::from)
+            .or_else(|| std::env::var_os("HOME").map(|home| PathBuf::from(home).join(".cache")))
+            .expect("HOME or XDG_CACHE_HOME must be set to find moto_server");
+        cache.join("xfactor-dist/s3-env/bin/moto_server")
+    }
+
+    /// Starts the server (its log goes to `dir/moto.log`) and waits until it answers. Panics,
+    /// failing the test, when it cannot be started: these tests must not pass by skipping.
+    pub fn start(dir: &Path) -> Self {
+        let program = Self::program();
+        let port = free_port().unwrap();
+        let log = dir.join("moto.log");
+        let child = Command::new(&program)
+            .args(["-H", "127.0.0.1", "-p", &port.to_string()])
+            .stdin(Stdio::null())
+            .stdout(Stdio::null())
+            .stderr(std::fs::File::create(&log).unwrap())
+            .spawn()
+            .unwrap_or_else(|e| {
+                panic!(
+                    "cannot start moto's S3 server `{}`: {e}; run scripts/setup.sh, which installs moto[server] there (or set XFACTOR_MOTO_SERVER)",
+                    program.display()
+                )
+            });
+        let mut moto = Self {
+            child,
+            endpoint: format!("http://127.0.0.1:{port}"),
+            port,
+            log,
+        };
+        let started = Instant::now();
+        loop {
+            if let Some(status) = moto.child.try_wait().unwrap() {
+                panic!(
+                    "moto's S3 server exited at start ({status}):\n{}",
+                    std::fs::read_to_string(&moto.log).unwrap_or_default()
+                );
+            }
+            if moto.request("GET", "/").is_ok_and(|s| s == 200) {
+                break;
+            }
+            assert!(
+                started.elapsed() < MOTO_START_LIMIT,
+                "moto's S3 server did not answer on {} within {MOTO_START_LIMIT:?}:\n{}",
+                moto.endpoint,
+                std::fs::read_to_string(&moto.log).unwrap_or_default()
+            );
+            std::thread::sleep(Duration::from_millis(100));
+        }
+        eprintln!(
+            "moto S3 server answering on {} after {:.2} s",
+            moto.endpoint,
+            started.elapsed().as_secs_f64()
+        );
+        moto
+    }
+
+    /// One bodiless HTTP/1.1 request; the response's status code.
+    fn request(&self, method: &str, path: &str) -> std::io::Result<u16> {
+        let mut stream = TcpStream::connect(("127.0.0.1", self.port))?;
+        stream.set_read_timeout(Some(Duration::from_secs(10)))?;
+        write!(
+            stream,
+            "{method} {path} HTTP/1.1\r\nHost: 127.0.0.1:{}\r\nContent-Length: 0\r\nConnection: close\r\n\r\n",
+            self.port
+        )?;
+        let mut response = String::new();
+        stream.read_to_string(&mut response)?;
+        response
+            .split_whitespace()
+            .nth(1)
+            .and_then(|code| code.parse().ok())
+            .ok_or_else(|| std::io::Error::other(format!("not an HTTP response: {response:.80}")))
+    }
+
+    /// Creates bucket `name` (object_store cannot create buckets).
+    pub fn create_bucket(&self, name: &str) {
+        let status = self.request("PUT", &format!("/{name}")).unwrap();
+        assert_eq!(status, 200, "creating bucket {name}");
+    }
+
+    /// The store settings that point object_store at this server, as environment variables.
+    pub fn env(&self) -> Vec<(String, String)> {
+        [
+            ("AWS_ENDPOINT", self.endpoint.as_str()),
+            ("AWS_ALLOW_HTTP", "true"),
+            ("AWS_ACCESS_KEY_ID", "testing"),
+            ("AWS_SECRET_ACCESS_KEY", "testing"),
+            ("AWS_REGION", "us-east-1"),
+        ]
+        .into_iter()
+        .map(|(key, value)| (key.to_string(), value.to_string()))
+        .collect()
+    }
+}
+
+impl Drop for Moto {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
 }

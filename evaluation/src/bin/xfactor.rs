@@ -7,14 +7,20 @@ use std::path::{Path, PathBuf};
 
 use anyhow::{Context, bail};
 use evaluation::evaluate::read_spec;
-use evaluation::{TransferRequest, run_evaluation, run_transfer};
+use evaluation::{Sampling, TransferRequest, run_evaluation, run_transfer_sampled};
 use settings::evaluation::OracleSpec;
 use telemetry::cli::{Flags, init_logging};
 use trainer_core::backend::BackendChoice;
 
 const USAGE: &str = "usage:
-  xfactor transfer --checkpoint MODEL.safetensors --trajectory DIR|URI --scene IMAGE|DIR|URI --out DIR
-                   [--reference N] [--backend cpu|wgpu] [--log-format human|json]
+  xfactor transfer --checkpoint MODEL.safetensors --trajectory VIDEO|DIR|URI --scene VIDEO|IMAGE|DIR|URI
+                   --out DIR [--frames N] [--scene-frames N] [--reference N] [--backend cpu|wgpu]
+                   [--log-format human|json]
+      videos (.mp4, .mov, .mkv, ... through ffmpeg): --frames evenly spaced trajectory frames
+      (default 30), --scene-frames scene frames (default 1); writes frames/, strip.png,
+      transfer.gif and transfer.mp4 under --out. Example:
+      xfactor transfer --checkpoint ckpt/model.safetensors --trajectory walk.mp4 \
+          --scene room.mp4 --frames 30 --out transfer-out
   xfactor evaluate --checkpoint MODEL.safetensors --out DIR [--spec SPEC.json]
                    [--oracle ground_truth|classical] [--oracle-command PROGRAM] [--lpips WEIGHTS]
                    [--backend cpu|wgpu] [--log-format human|json]";
@@ -62,11 +68,24 @@ fn transfer(args: &[String]) -> anyhow::Result<()> {
             "scene",
             "out",
             "reference",
+            "frames",
+            "scene-frames",
             "backend",
             "log-format",
         ],
     )?;
     let required = |name: &str| required(&flags, name);
+    let count = |name: &str| {
+        flags
+            .get(name)
+            .map(str::parse::<usize>)
+            .transpose()
+            .with_context(|| format!("--{name} must be a whole number"))
+    };
+    let sampling = Sampling {
+        frames: count("frames")?,
+        scene_frames: count("scene-frames")?,
+    };
     let request = TransferRequest {
         checkpoint: PathBuf::from(required("checkpoint")?),
         trajectory: required("trajectory")?.to_string(),
@@ -78,7 +97,7 @@ fn transfer(args: &[String]) -> anyhow::Result<()> {
         out_dir: PathBuf::from(required("out")?),
     };
     let device = backend(&flags)?.device();
-    let output = run_transfer(&request, &device)
+    let output = run_transfer_sampled(&request, &sampling, &device)
         .with_context(|| format!("transferring {} into {}", request.trajectory, request.scene))?;
     println!("{}", serde_json::to_string_pretty(&output)?);
     Ok(())

@@ -1,0 +1,48 @@
+//! `grpc.health.v1` for the coordinator: Kubernetes gRPC probes and load balancers ask it
+//! whether the job is running. The health service is served beside the Coordinator service but
+//! outside the job-token check (a probe has no token), and it answers only that status.
+
+use proto::v1::coordinator_server::CoordinatorServer;
+use tonic::server::NamedService;
+use tonic_health::ServingStatus;
+use tonic_health::pb::health_server::{Health, HealthServer};
+use tonic_health::server::HealthReporter;
+
+use crate::service::CoordinatorService;
+
+/// The service name probes may ask about besides the server as a whole (`""`).
+pub const COORDINATOR_SERVICE: &str = <CoordinatorServer<CoordinatorService> as NamedService>::NAME;
+
+/// What the health service says about the job.
+#[derive(Clone)]
+pub struct JobHealth {
+    reporter: HealthReporter,
+}
+
+impl JobHealth {
+    /// A reporter and the service it feeds, both saying SERVING until told otherwise.
+    pub async fn new() -> (Self, HealthServer<impl Health>) {
+        let (reporter, server) = tonic_health::server::health_reporter();
+        let health = Self { reporter };
+        health.set(ServingStatus::Serving).await;
+        (health, server)
+    }
+
+    /// The job is finished or stopping: probes see NOT_SERVING from now on.
+    pub async fn job_ending(&self) {
+        self.set(ServingStatus::NotServing).await;
+    }
+
+    /// Ends open `Watch` streams (the server's graceful shutdown waits for open streams).
+    pub async fn close(mut self) {
+        for name in ["", COORDINATOR_SERVICE] {
+            self.reporter.clear_service_status(name).await;
+        }
+    }
+
+    async fn set(&self, status: ServingStatus) {
+        for name in ["", COORDINATOR_SERVICE] {
+            self.reporter.set_service_status(name, status).await;
+        }
+    }
+}
