@@ -227,12 +227,9 @@ impl AuthConfig {
     pub fn resolve(&self) -> Result<String, String> {
         match self {
             Self::Token(token) => Ok(token.0.clone()),
-            Self::TokenEnv(name) => std::env::var(&name.0).map_err(|_| {
-                format!(
-                    "auth.token_env names `{}`, which is not set in the environment",
-                    name.0
-                )
-            }),
+            Self::TokenEnv(name) => {
+                proto::auth::token_from_env(&name.0).map_err(|e| format!("auth.token_env: {e}"))
+            }
         }
     }
 }

@@ -7,7 +7,6 @@ pub mod allocator;
 pub mod augment;
 pub mod backend;
 pub mod checkpoint;
-pub mod cli;
 pub mod config;
 pub mod data;
 pub mod flat;
