@@ -1,66 +1,89 @@
 //! `xfactor-coordinator`: runs a job from a cluster YAML, or prints a running job's status.
 
-use std::path::Path;
+use std::path::PathBuf;
 
 use anyhow::{Context, bail};
+use clap::{Parser, Subcommand};
 use coordinator::config::ClusterConfig;
 use coordinator::plan::Plan;
 use coordinator::service::CoordinatorService;
+use proto::auth::TokenArgs;
+use proto::tls::TlsClientArgs;
 use proto::v1::StatusRequest;
 use proto::v1::coordinator_client::CoordinatorClient;
-use telemetry::cli::{Flags, init_logging};
+use telemetry::logging::LogArgs;
 
-const USAGE: &str = "usage:
-  xfactor-coordinator run --config CLUSTER.yaml [--dry-run] [--report REPORT.json]
-                          [--metrics-address HOST:PORT] [--log-format human|json]
-  xfactor-coordinator status --address http(s)://HOST:PORT (--token TOKEN | --token-env VAR)
-                             [--tls-ca CA.pem] [--tls-domain NAME]";
+/// Runs a job from a cluster YAML, or prints a running job's status.
+#[derive(Debug, Parser)]
+#[command(name = "xfactor-coordinator", version)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Debug, Subcommand)]
+enum Command {
+    /// Runs the job the cluster YAML describes until it ends
+    Run(RunArgs),
+    /// Prints a running job's status in one line
+    Status(StatusArgs),
+}
+
+#[derive(Debug, clap::Args)]
+struct RunArgs {
+    /// The cluster YAML
+    #[arg(long, value_name = "CLUSTER.yaml")]
+    config: PathBuf,
+    /// Prints the resolved plan (ranks, shards, steps) and exits
+    #[arg(long)]
+    dry_run: bool,
+    /// Where the job report (JSON) is written when the job ends
+    #[arg(long, value_name = "REPORT.json")]
+    report: Option<PathBuf>,
+    /// Serves Prometheus /metrics and /healthz here (by default the YAML's metrics_listen, if any)
+    #[arg(long, value_name = "HOST:PORT")]
+    metrics_address: Option<String>,
+    #[command(flatten)]
+    log: LogArgs,
+}
+
+#[derive(Debug, clap::Args)]
+struct StatusArgs {
+    /// The coordinator, http(s)://HOST:PORT
+    #[arg(long, value_name = "URL")]
+    address: String,
+    #[command(flatten)]
+    token: TokenArgs,
+    #[command(flatten)]
+    tls: TlsClientArgs,
+}
 
 fn main() -> anyhow::Result<()> {
-    let args: Vec<String> = std::env::args().skip(1).collect();
-    let Some((command, rest)) = args.split_first() else {
-        bail!("{USAGE}");
-    };
+    let cli = Cli::parse();
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
         .enable_all()
         .build()?;
-    match command.as_str() {
-        "run" => {
-            let flags = Flags::parse(
-                rest,
-                &["dry-run"],
-                &["config", "report", "log-format", "metrics-address"],
-            )
-            .map_err(|e| anyhow::anyhow!("{e}\n{USAGE}"))?;
-            init_logging(flags.get("log-format")).map_err(anyhow::Error::msg)?;
-            runtime.block_on(run(&flags))
+    match cli.command {
+        Command::Run(args) => {
+            args.log.init()?;
+            runtime.block_on(run(&args))
         }
-        "status" => {
-            let flags = Flags::parse(
-                rest,
-                &[],
-                &["address", "token", "token-env", "tls-ca", "tls-domain"],
-            )
-            .map_err(|e| anyhow::anyhow!("{e}\n{USAGE}"))?;
-            runtime.block_on(status(&flags))
-        }
-        other => bail!("unknown command `{other}`\n{USAGE}"),
+        Command::Status(args) => runtime.block_on(status(&args)),
     }
 }
 
-async fn run(flags: &Flags) -> anyhow::Result<()> {
-    let path = flags.require("config").map_err(anyhow::Error::msg)?;
-    let config = ClusterConfig::from_file(Path::new(path))?;
+async fn run(args: &RunArgs) -> anyhow::Result<()> {
+    let config = ClusterConfig::from_file(&args.config)?;
     let token = config.auth.resolve()?;
     let plan = Plan::build(config).await?;
-    if flags.has("dry-run") {
+    if args.dry_run {
         print!("{}", plan.describe());
         return Ok(());
     }
-    let metrics_address = flags
-        .get("metrics-address")
-        .map(str::to_string)
+    let metrics_address = args
+        .metrics_address
+        .clone()
         .or_else(|| plan.config.metrics_listen.as_ref().map(|a| a.0.clone()));
     let service = CoordinatorService::new(plan).await?;
     if let Some(address) = metrics_address {
@@ -79,8 +102,9 @@ async fn run(flags: &Flags) -> anyhow::Result<()> {
     };
     let report = service.run(&token, shutdown).await?;
     let json = serde_json::to_string_pretty(&report)?;
-    if let Some(path) = flags.get("report") {
-        std::fs::write(path, &json).with_context(|| format!("writing the report to {path}"))?;
+    if let Some(path) = &args.report {
+        std::fs::write(path, &json)
+            .with_context(|| format!("writing the report to {}", path.display()))?;
     }
     tracing::info!(outcome = %report.outcome, restarts = report.restarts, mismatches = report.checksum_mismatches.len(), "job ended");
     if let Some(reason) = report.outcome.strip_prefix("failed: ") {
@@ -95,24 +119,13 @@ async fn run(flags: &Flags) -> anyhow::Result<()> {
     Ok(())
 }
 
-async fn status(flags: &Flags) -> anyhow::Result<()> {
-    let address = flags.require("address").map_err(anyhow::Error::msg)?;
-    let token = match (flags.get("token"), flags.get("token-env")) {
-        (Some(token), _) => token.to_string(),
-        (None, Some(var)) => std::env::var(var).with_context(|| format!("{var} is not set"))?,
-        (None, None) => bail!("give --token or --token-env"),
-    };
-    let mut endpoint = tonic::transport::Endpoint::from_shared(address.to_string())
+async fn status(args: &StatusArgs) -> anyhow::Result<()> {
+    let address = &args.address;
+    let token = args.token.resolve()?;
+    let mut endpoint = tonic::transport::Endpoint::from_shared(address.clone())
         .with_context(|| format!("`{address}` is not a URL"))?;
-    if let Some(ca) = flags.get("tls-ca") {
-        if endpoint.uri().scheme_str() != Some("https") {
-            bail!("--tls-ca needs an https:// address, got `{address}`");
-        }
-        let domain = match flags.get("tls-domain") {
-            Some(domain) => domain.to_string(),
-            None => endpoint.uri().host().unwrap_or("localhost").to_string(),
-        };
-        endpoint = endpoint.tls_config(proto::tls::client_config(Path::new(ca), &domain)?)?;
+    if let Some(tls) = args.tls.client_config(endpoint.uri())? {
+        endpoint = endpoint.tls_config(tls)?;
     }
     let channel = endpoint
         .connect()

@@ -1,12 +1,19 @@
 //! `xfactor-coordinator run --dry-run`: the resolved plan of a real dataset, and a bad YAML
-//! refused with the key and line named.
+//! refused with the key and line named; every flag of `xfactor-coordinator` and `xfactor-local`
+//! in `--help` with its default, and bad values refused by name.
 
 use std::process::Command;
 
 use coordinator::local::{LocalJob, free_port};
 
+#[path = "../../test-support/help.rs"]
+mod help;
+
+const COORDINATOR: &str = env!("CARGO_BIN_EXE_xfactor-coordinator");
+const LOCAL: &str = env!("CARGO_BIN_EXE_xfactor-local");
+
 fn coordinator() -> Command {
-    Command::new(env!("CARGO_BIN_EXE_xfactor-coordinator"))
+    Command::new(COORDINATOR)
 }
 
 /// A local job's data and YAML in a temporary folder (kept alive by the returned guard).
@@ -81,4 +88,92 @@ fn a_bad_yaml_fails_before_anything_starts() {
         .output()
         .unwrap();
     assert!(String::from_utf8_lossy(&missing.stderr).contains("/nonexistent/cluster.yaml"));
+}
+
+#[test]
+fn help_lists_every_flag_with_its_default() {
+    help::assert_flags(
+        COORDINATOR,
+        &["run"],
+        &[
+            ("--config", None),
+            ("--dry-run", None),
+            ("--report", None),
+            ("--metrics-address", None),
+            ("--log-format", Some("human")),
+        ],
+    );
+    help::assert_flags(
+        COORDINATOR,
+        &["status"],
+        &[
+            ("--address", None),
+            ("--token", None),
+            ("--token-env", Some("XFACTOR_TOKEN")),
+            ("--tls-ca", None),
+            ("--tls-domain", None),
+        ],
+    );
+    let job = LocalJob::new(std::path::Path::new("unused"), 0);
+    let (workers, stage1, stage2) = (
+        job.workers.to_string(),
+        job.stage1_steps.to_string(),
+        job.stage2_steps.to_string(),
+    );
+    let (image_size, global_batch, micro_batch) = (
+        job.image_size.to_string(),
+        job.global_batch.to_string(),
+        job.micro_batch.to_string(),
+    );
+    help::assert_flags(
+        LOCAL,
+        &[],
+        &[
+            ("--dir", Some("xfactor-local-run")),
+            ("--workers", Some(&workers)),
+            ("--stage1-steps", Some(&stage1)),
+            ("--stage2-steps", Some(&stage2)),
+            ("--preset", Some(&job.preset)),
+            ("--image-size", Some(&image_size)),
+            ("--global-batch", Some(&global_batch)),
+            ("--micro-batch", Some(&micro_batch)),
+            ("--no-evaluate", None),
+            ("--log-format", Some("human")),
+        ],
+    );
+}
+
+#[test]
+fn bad_values_are_refused_naming_the_flag() {
+    help::assert_refused(
+        COORDINATOR,
+        &["run", "--config", "c.yaml", "--log-format", "xml"],
+        "--log-format",
+    );
+    help::assert_refused(COORDINATOR, &["run"], "--config");
+    help::assert_refused(
+        COORDINATOR,
+        &[
+            "status",
+            "--address",
+            "http://127.0.0.1:1",
+            "--tls-domain",
+            "x",
+        ],
+        "--tls-ca",
+    );
+    help::assert_refused(LOCAL, &["--workers", "two"], "--workers");
+    help::assert_refused(LOCAL, &["--preset", "huge"], "--preset");
+}
+
+#[test]
+fn status_names_the_token_variable_it_cannot_read() {
+    let var = "XFACTOR_TEST_TOKEN_THAT_IS_NOT_SET";
+    let status = ["status", "--address", "http://127.0.0.1:1"];
+    help::assert_fails(
+        COORDINATOR,
+        &[&status[..], &["--token-env", var]].concat(),
+        1,
+        var,
+    );
 }

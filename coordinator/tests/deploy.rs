@@ -4,9 +4,13 @@
 
 use std::collections::BTreeSet;
 use std::path::{Path, PathBuf};
-use std::process::Command;
 
 use coordinator::config::ClusterConfig;
+
+// Only the help-text reader: the help assertions are tests/cli.rs's.
+#[allow(dead_code)]
+#[path = "../../test-support/help.rs"]
+mod help;
 
 fn repository() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("..")
@@ -47,14 +51,11 @@ fn the_kubernetes_config_map_is_the_kubernetes_example() {
     );
 }
 
-/// The `--flags` a binary's usage text lists (it prints it on an unknown flag).
+/// The `--flags` a binary's `--help` defines.
 fn usage_flags(binary: &str, arguments: &[&str]) -> BTreeSet<String> {
-    let output = Command::new(binary)
-        .args(arguments)
-        .arg("--no-such-flag")
-        .output()
-        .unwrap();
-    flags_in(&String::from_utf8_lossy(&output.stderr))
+    help::flags(&help::help(binary, arguments))
+        .into_keys()
+        .collect()
 }
 
 fn flags_in(text: &str) -> BTreeSet<String> {

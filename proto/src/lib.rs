@@ -4,8 +4,11 @@
 //! Nothing else is shared between the coordinator and the workers at run time: a change here is
 //! a change of [`PROTOCOL_VERSION`], which registration compares.
 
+pub mod auth;
 pub mod convert;
 pub mod tls;
+
+pub use auth::TokenError;
 
 /// Generated messages and services of package `xfactor.v1`.
 #[allow(missing_docs, clippy::all)]
@@ -86,26 +89,6 @@ fn constant_time_equal(a: &[u8], b: &[u8]) -> bool {
     }
     a.iter().zip(b).fold(0u8, |diff, (x, y)| diff | (x ^ y)) == 0
 }
-
-/// Why a token cannot be used.
-#[derive(Debug, Clone, PartialEq, Eq)]
-pub enum TokenError {
-    /// HTTP headers carry visible ASCII only.
-    NotAscii,
-}
-
-impl std::fmt::Display for TokenError {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        match self {
-            Self::NotAscii => write!(
-                f,
-                "the job token must be visible ASCII without spaces at the ends"
-            ),
-        }
-    }
-}
-
-impl std::error::Error for TokenError {}
 
 #[cfg(test)]
 mod tests {

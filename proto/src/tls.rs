@@ -29,6 +29,46 @@ pub enum TlsError {
         /// The PEM label looked for.
         label: &'static str,
     },
+    /// `--tls-ca` was given for an address that is not `https://`.
+    #[error("--tls-ca needs an https:// address, got `{address}`")]
+    NotHttps {
+        /// The address.
+        address: String,
+    },
+}
+
+/// The TLS flags of a client that dials one server (`xfactor-coordinator status`, the worker).
+#[derive(Debug, Clone, Default, PartialEq, Eq, clap::Args)]
+pub struct TlsClientArgs {
+    /// CA certificate (PEM) to trust; turns TLS on, and the address must then be https://
+    #[arg(long, value_name = "CA.pem")]
+    pub tls_ca: Option<PathBuf>,
+    /// Name the server's certificate must carry (by default the host of the address dialled)
+    #[arg(long, value_name = "NAME", requires = "tls_ca")]
+    pub tls_domain: Option<String>,
+}
+
+impl TlsClientArgs {
+    /// The settings for dialling `address`: `None` without `--tls-ca`; refused when the address
+    /// is not `https://`.
+    pub fn client_config(
+        &self,
+        address: &tonic::transport::Uri,
+    ) -> Result<Option<ClientTlsConfig>, TlsError> {
+        let Some(ca) = &self.tls_ca else {
+            return Ok(None);
+        };
+        if address.scheme_str() != Some("https") {
+            return Err(TlsError::NotHttps {
+                address: address.to_string(),
+            });
+        }
+        let domain = match &self.tls_domain {
+            Some(domain) => domain.as_str(),
+            None => address.host().unwrap_or("localhost"),
+        };
+        client_config(ca, domain).map(Some)
+    }
 }
 
 /// Makes ring the process's TLS crypto provider (once). Two providers are linked into these
@@ -109,5 +149,29 @@ mod tests {
                 && swapped.to_string().contains("CERTIFICATE"),
             "{swapped}"
         );
+    }
+
+    #[test]
+    fn tls_flags_need_an_https_address_and_the_domain_needs_the_ca() {
+        use clap::Parser;
+        #[derive(Debug, Parser)]
+        struct Cli {
+            #[command(flatten)]
+            tls: TlsClientArgs,
+        }
+        let ca = testdata("ca.pem");
+        let cli = Cli::try_parse_from(["test", "--tls-ca", ca.to_str().unwrap()]).unwrap();
+        let https = "https://127.0.0.1:50051".parse().unwrap();
+        assert!(cli.tls.client_config(&https).unwrap().is_some());
+        let http = "http://127.0.0.1:50051".parse().unwrap();
+        let refused = cli.tls.client_config(&http).unwrap_err();
+        assert!(
+            refused.to_string().contains("http://127.0.0.1:50051"),
+            "{refused}"
+        );
+        let none = Cli::try_parse_from(["test"]).unwrap();
+        assert!(none.tls.client_config(&http).unwrap().is_none());
+        let alone = Cli::try_parse_from(["test", "--tls-domain", "x"]).unwrap_err();
+        assert!(alone.to_string().contains("--tls-ca"), "{alone}");
     }
 }

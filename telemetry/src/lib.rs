@@ -1,13 +1,14 @@
 //! `telemetry`: how the coordinator and the workers tell operators what they are doing.
 //!
-//! Prometheus series (gauges, counters, histograms) in a [`metrics::Registry`], served as text on `/metrics` by
-//! [`http::serve`], and loss curves written as CSV and drawn to PNG by [`curves`]. It knows
-//! nothing about the model or the job protocol: callers name their series.
+//! Log lines on stderr set up by [`logging`] (with the shared `--log-format` flag), Prometheus
+//! series (gauges, counters, histograms) in a [`metrics::Registry`], served as text on
+//! `/metrics` by [`http::serve`], and loss curves written as CSV and drawn to PNG by
+//! [`curves`]. It knows nothing about the model or the job protocol: callers name their series.
 
-pub mod cli;
 pub mod curves;
 pub mod histogram;
 pub mod http;
+pub mod logging;
 pub mod metrics;
 pub mod training;
 

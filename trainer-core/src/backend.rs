@@ -4,13 +4,23 @@ use std::str::FromStr;
 
 use burn::tensor::{Device, DeviceKind};
 
-/// The compute backends this crate runs on.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+/// The compute backends this crate runs on; also the values of `--backend`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
 pub enum BackendChoice {
-    /// burn's pure-Rust CPU backend (`flex`), multi-threaded with rayon.
+    /// burn's pure-Rust CPU backend (flex), multi-threaded with rayon
+    #[value(alias = "flex")]
     Cpu,
-    /// burn-wgpu on the best adapter present (a GPU, or lavapipe's software Vulkan device).
+    /// burn-wgpu on the best adapter present (a GPU, or lavapipe's software Vulkan device)
+    #[value(alias = "gpu")]
     Wgpu,
+}
+
+/// The `--backend` flag of the binaries that run the model in one process.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, clap::Args)]
+pub struct BackendArgs {
+    /// Compute backend
+    #[arg(long, value_enum, ignore_case = true, default_value_t = BackendChoice::Cpu)]
+    pub backend: BackendChoice,
 }
 
 impl BackendChoice {
@@ -39,11 +49,29 @@ pub struct UnknownBackend(String);
 impl FromStr for BackendChoice {
     type Err = UnknownBackend;
 
+    /// The names and aliases `--backend` accepts, in any case.
     fn from_str(name: &str) -> Result<Self, Self::Err> {
-        match name.to_ascii_lowercase().as_str() {
-            "cpu" | "flex" => Ok(Self::Cpu),
-            "wgpu" | "gpu" => Ok(Self::Wgpu),
-            _ => Err(UnknownBackend(name.to_string())),
+        <Self as clap::ValueEnum>::from_str(name, true)
+            .map_err(|_| UnknownBackend(name.to_string()))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn names_and_aliases_parse_in_any_case_and_others_are_refused() {
+        for (name, backend) in [
+            ("cpu", BackendChoice::Cpu),
+            ("Flex", BackendChoice::Cpu),
+            ("wgpu", BackendChoice::Wgpu),
+            ("GPU", BackendChoice::Wgpu),
+        ] {
+            assert_eq!(name.parse::<BackendChoice>().unwrap(), backend, "{name}");
+            assert_eq!(backend.name().parse::<BackendChoice>().unwrap(), backend);
         }
+        let refused = "tpu".parse::<BackendChoice>().unwrap_err();
+        assert!(refused.to_string().contains("`tpu`"), "{refused}");
     }
 }

@@ -3,8 +3,6 @@
 
 use std::time::Duration;
 
-use anyhow::Context;
-use telemetry::cli::Flags;
 use tokio::sync::watch;
 
 use crate::collective::{CollectiveService, Link, Ring, spawn_server};
@@ -12,28 +10,56 @@ use crate::collective::{CollectiveService, Link, Ring, spawn_server};
 /// Token of the benchmark's private ring.
 const BENCH_TOKEN: &str = "allreduce-bench";
 
+/// The flags of `xfactor-worker allreduce-bench`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct BenchArgs {
+    /// This process's rank: its index in --peers
+    #[arg(long, value_name = "R")]
+    pub rank: usize,
+    /// Every rank's HOST:PORT, comma-separated, in rank order
+    #[arg(long, value_name = "A,B,...", value_delimiter = ',', required = true)]
+    pub peers: Vec<String>,
+    /// All-reduce sizes in MB, comma-separated
+    #[arg(
+        long,
+        value_name = "MB,...",
+        value_delimiter = ',',
+        default_value = "1,16,64,100"
+    )]
+    pub sizes_mb: Vec<f64>,
+    /// Timed runs per size, at least (small sizes run more)
+    #[arg(long, value_name = "N", default_value_t = 5)]
+    pub repeats: usize,
+    /// I/O threads of the runtime (1, as the worker daemon uses)
+    #[arg(
+        long,
+        value_name = "N",
+        default_value_t = 1,
+        value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..)
+    )]
+    pub threads: usize,
+    /// Values per collective chunk (by default the ring's)
+    #[arg(long, value_name = "N")]
+    pub chunk_values: Option<usize>,
+}
+
 /// Runs rank `--rank` of the ring `--peers`; rank 0 prints `size_mb=.. seconds=..` per size:
 /// the median of at least `--repeats` runs (more for small sizes) after one warm-up, on a
-/// runtime of `--threads` I/O threads (1, as the worker daemon uses).
-pub fn run_rank(flags: &Flags) -> anyhow::Result<()> {
-    let rank: usize = flags.require("rank").map_err(anyhow::Error::msg)?.parse()?;
-    let peers: Vec<String> = flags
-        .require("peers")
-        .map_err(anyhow::Error::msg)?
-        .split(',')
-        .map(str::to_string)
-        .collect();
-    let sizes: Vec<f64> = flags
-        .get("sizes-mb")
-        .unwrap_or("1,16,64,100")
-        .split(',')
-        .map(|s| s.parse::<f64>().with_context(|| format!("size `{s}`")))
-        .collect::<Result<_, _>>()?;
-    let repeats: usize = flags.get("repeats").unwrap_or("5").parse()?;
-    let chunk_values: Option<usize> = flags.get("chunk-values").map(str::parse).transpose()?;
-    let threads: usize = flags.get("threads").unwrap_or("1").parse()?;
-    if threads == 0 {
-        anyhow::bail!("--threads must be at least 1");
+/// runtime of `--threads` I/O threads.
+pub fn run_rank(args: &BenchArgs) -> anyhow::Result<()> {
+    let BenchArgs {
+        rank,
+        peers,
+        sizes_mb: sizes,
+        repeats,
+        threads,
+        chunk_values,
+    } = args.clone();
+    if let Some(size) = sizes
+        .iter()
+        .find(|size| !(**size > 0.0 && size.is_finite()))
+    {
+        anyhow::bail!("--sizes-mb {size}: sizes must be above 0");
     }
     if rank >= peers.len() {
         anyhow::bail!("--rank {rank} is not below the {} peers given", peers.len());
@@ -42,9 +68,7 @@ pub fn run_rank(flags: &Flags) -> anyhow::Result<()> {
         .worker_threads(threads)
         .enable_all()
         .build()?;
-    let peers_owned = peers.clone();
     let task = runtime.spawn(async move {
-        let peers = peers_owned;
         let service = CollectiveService::default();
         let mailbox = service.mailbox();
         let listener = tokio::net::TcpListener::bind(&peers[rank]).await?;

@@ -1,39 +1,146 @@
 //! `xfactor-worker`: a worker daemon that joins a job's coordinator and trains until the job
 //! ends; `xfactor-worker allreduce-bench` times the ring all-reduce between processes.
 
+use std::path::PathBuf;
 use std::time::Duration;
 
-use anyhow::{Context, bail};
-use telemetry::cli::{Flags, init_logging};
+use anyhow::Context;
+use clap::{Parser, Subcommand, ValueEnum};
+use proto::auth::TokenArgs;
+use proto::tls::TlsClientArgs;
+use settings::DeviceChoice;
+use telemetry::logging::LogArgs;
+use worker::bench::BenchArgs;
 use worker::daemon::{WorkerOptions, WorkerTls, run};
 
-const USAGE: &str = "usage:
-  xfactor-worker --coordinator http(s)://HOST:PORT (--token TOKEN | --token-env VAR)
-                 [--listen 127.0.0.1:0] [--advertise HOST:PORT] [--device auto|cpu|wgpu]
-                 [--threads N] [--name NAME] [--model-config MODEL.json]
-                 [--collective-timeout-s 120] [--scratch DIR] [--log-format human|json]
-                 [--metrics-address HOST:PORT]
-                 [--tls-ca CA.pem [--tls-domain NAME] [--tls-cert CERT.pem --tls-key KEY.pem]]
-  xfactor-worker allreduce-bench --rank R --peers A,B,... --sizes-mb 1,16,64,100 [--repeats 5] [--threads 1] [--chunk-values N]";
+/// A worker daemon that joins a job's coordinator and trains until the job ends.
+#[derive(Debug, Parser)]
+#[command(
+    name = "xfactor-worker",
+    version,
+    subcommand_negates_reqs = true,
+    args_conflicts_with_subcommands = true
+)]
+struct Cli {
+    #[command(subcommand)]
+    command: Option<Command>,
+    #[command(flatten)]
+    daemon: DaemonArgs,
+}
 
-/// TLS settings from `--tls-*`: the CA is required for any TLS, and the certificate and key
-/// come as a pair.
-fn tls_options(flags: &Flags) -> anyhow::Result<Option<WorkerTls>> {
-    let identity = match (flags.get("tls-cert"), flags.get("tls-key")) {
-        (Some(cert), Some(key)) => Some((cert.into(), key.into())),
-        (None, None) => None,
-        _ => bail!("--tls-cert and --tls-key go together"),
-    };
-    match flags.get("tls-ca") {
-        Some(ca) => Ok(Some(WorkerTls {
-            ca: ca.into(),
-            domain: flags.get("tls-domain").map(str::to_string),
-            identity,
-        })),
-        None if identity.is_some() || flags.has("tls-domain") => {
-            bail!("--tls-cert, --tls-key and --tls-domain need --tls-ca")
-        }
-        None => Ok(None),
+#[derive(Debug, Subcommand)]
+enum Command {
+    /// Runs one rank of the all-reduce benchmark (benches/allreduce.rs starts the ranks)
+    AllreduceBench(BenchArgs),
+}
+
+/// The compute device a worker asks for instead of the job's.
+#[derive(Debug, Clone, Copy, ValueEnum)]
+enum Device {
+    /// The GPU when /dev/nvidiactl or /dev/kfd exists, else the CPU
+    Auto,
+    /// burn's CPU backend
+    Cpu,
+    /// burn-wgpu
+    Wgpu,
+}
+
+#[derive(Debug, clap::Args)]
+struct DaemonArgs {
+    /// The coordinator, http(s)://HOST:PORT
+    #[arg(long, value_name = "URL", required = true)]
+    coordinator: Option<String>,
+    #[command(flatten)]
+    token: TokenArgs,
+    /// Where the collective service binds (port 0: any free port)
+    #[arg(long, value_name = "HOST:PORT", default_value = "127.0.0.1:0")]
+    listen: String,
+    /// Address peers dial, when it differs from the bound one (NAT, 0.0.0.0)
+    #[arg(long, value_name = "HOST:PORT")]
+    advertise: Option<String>,
+    /// Compute device (by default the job's)
+    #[arg(long, value_enum)]
+    device: Option<Device>,
+    /// Threads per micro-batch (by default the job's)
+    #[arg(long, value_name = "N")]
+    threads: Option<usize>,
+    /// Name in logs (by default worker-PID)
+    #[arg(long, value_name = "NAME")]
+    name: Option<String>,
+    /// Model config (JSON) this worker insists on; registration fails on another
+    #[arg(long, value_name = "MODEL.json")]
+    model_config: Option<PathBuf>,
+    /// Longest wait for a peer's chunk, in seconds
+    #[arg(long, value_name = "SECONDS", default_value_t = 120.0, value_parser = positive_seconds)]
+    collective_timeout_s: f64,
+    /// Scratch space for checkpoints (by default a fresh folder in the system's temp dir)
+    #[arg(long, value_name = "DIR")]
+    scratch: Option<PathBuf>,
+    #[command(flatten)]
+    log: LogArgs,
+    /// Serves Prometheus /metrics and /healthz here
+    #[arg(long, value_name = "HOST:PORT")]
+    metrics_address: Option<String>,
+    #[command(flatten)]
+    tls: TlsClientArgs,
+    /// This worker's certificate (PEM): its collective service runs TLS and peers are dialled over TLS
+    #[arg(long, value_name = "CERT.pem", requires_all = ["tls_key", "tls_ca"])]
+    tls_cert: Option<PathBuf>,
+    /// The private key (PEM) of --tls-cert
+    #[arg(long, value_name = "KEY.pem", requires = "tls_cert")]
+    tls_key: Option<PathBuf>,
+}
+
+/// A whole number of seconds or a fraction, above zero and small enough for a `Duration`.
+fn positive_seconds(text: &str) -> Result<f64, String> {
+    let seconds: f64 = text.parse().map_err(|e| format!("{e}"))?;
+    if seconds > 0.0 && Duration::try_from_secs_f64(seconds).is_ok() {
+        Ok(seconds)
+    } else {
+        Err("expected a number of seconds above 0".into())
+    }
+}
+
+impl DaemonArgs {
+    /// The daemon's options; reads the expected model config.
+    fn into_options(self) -> anyhow::Result<WorkerOptions> {
+        let token = self.token.resolve()?;
+        let expected_model_config = self
+            .model_config
+            .map(|path| {
+                let text = std::fs::read_to_string(&path)
+                    .with_context(|| format!("--model-config {}", path.display()))?;
+                serde_json::from_str::<settings::XFactorConfig>(&text).with_context(|| {
+                    format!("--model-config {} is not a model config", path.display())
+                })
+            })
+            .transpose()?;
+        let pid = std::process::id();
+        let tls = self.tls.tls_ca.map(|ca| WorkerTls {
+            ca,
+            domain: self.tls.tls_domain,
+            identity: self.tls_cert.zip(self.tls_key),
+        });
+        Ok(WorkerOptions {
+            coordinator: self.coordinator.context("--coordinator is required")?,
+            token,
+            listen: self.listen,
+            advertise: self.advertise,
+            device: self.device.map(|device| match device {
+                Device::Auto => DeviceChoice::Auto,
+                Device::Cpu => DeviceChoice::Cpu,
+                Device::Wgpu => DeviceChoice::Wgpu,
+            }),
+            threads: self.threads,
+            name: self.name.unwrap_or_else(|| format!("worker-{pid}")),
+            expected_model_config,
+            collective_timeout: Duration::from_secs_f64(self.collective_timeout_s),
+            scratch: self
+                .scratch
+                .unwrap_or_else(|| std::env::temp_dir().join(format!("xfactor-worker-{pid}"))),
+            metrics_address: self.metrics_address,
+            tls,
+        })
     }
 }
 
@@ -41,105 +148,11 @@ fn main() -> anyhow::Result<()> {
     // Before any thread exists: large buffers (gradients, chunks, tensors) are reused from the
     // heap instead of being mapped, faulted in and unmapped every step.
     let tuning = trainer_core::allocator::keep_freed_memory();
-    let args: Vec<String> = std::env::args().skip(1).collect();
-    if args.first().map(String::as_str) == Some("allreduce-bench") {
-        let flags = Flags::parse(
-            &args[1..],
-            &[],
-            &[
-                "rank",
-                "peers",
-                "sizes-mb",
-                "repeats",
-                "threads",
-                "chunk-values",
-            ],
-        )
-        .map_err(|e| anyhow::anyhow!("{e}\n{USAGE}"))?;
-        return worker::bench::run_rank(&flags);
+    let cli = Cli::parse();
+    if let Some(Command::AllreduceBench(args)) = cli.command {
+        return worker::bench::run_rank(&args);
     }
-    let flags = Flags::parse(
-        &args,
-        &[],
-        &[
-            "coordinator",
-            "token",
-            "token-env",
-            "listen",
-            "advertise",
-            "device",
-            "threads",
-            "name",
-            "model-config",
-            "collective-timeout-s",
-            "scratch",
-            "log-format",
-            "metrics-address",
-            "tls-ca",
-            "tls-domain",
-            "tls-cert",
-            "tls-key",
-        ],
-    )
-    .map_err(|e| anyhow::anyhow!("{e}\n{USAGE}"))?;
-    init_logging(flags.get("log-format")).map_err(anyhow::Error::msg)?;
+    cli.daemon.log.init()?;
     tracing::debug!(?tuning, "allocator tuned");
-    let token = match (flags.get("token"), flags.get("token-env")) {
-        (Some(token), _) => token.to_string(),
-        (None, Some(var)) => {
-            std::env::var(var).with_context(|| format!("--token-env: {var} is not set"))?
-        }
-        (None, None) => bail!("give --token or --token-env\n{USAGE}"),
-    };
-    let threads = flags
-        .get("threads")
-        .map(|t| {
-            t.parse::<usize>()
-                .with_context(|| format!("--threads `{t}` is not a whole number"))
-        })
-        .transpose()?;
-    let timeout = flags
-        .get("collective-timeout-s")
-        .map(|t| {
-            t.parse::<f64>()
-                .with_context(|| format!("--collective-timeout-s `{t}` is not a number"))
-        })
-        .transpose()?
-        .unwrap_or(120.0);
-    let expected_model_config = flags
-        .get("model-config")
-        .map(|path| {
-            let text =
-                std::fs::read_to_string(path).with_context(|| format!("--model-config {path}"))?;
-            serde_json::from_str::<settings::XFactorConfig>(&text)
-                .with_context(|| format!("--model-config {path} is not a model config"))
-        })
-        .transpose()?;
-    let scratch = match flags.get("scratch") {
-        Some(dir) => dir.into(),
-        None => std::env::temp_dir().join(format!("xfactor-worker-{}", std::process::id())),
-    };
-    let options = WorkerOptions {
-        coordinator: flags
-            .require("coordinator")
-            .map_err(anyhow::Error::msg)?
-            .to_string(),
-        token,
-        listen: flags.get("listen").unwrap_or("127.0.0.1:0").to_string(),
-        advertise: flags.get("advertise").map(str::to_string),
-        device: flags
-            .get("device")
-            .map(str::parse::<settings::DeviceChoice>)
-            .transpose()?,
-        threads,
-        name: flags
-            .get("name")
-            .map_or_else(|| format!("worker-{}", std::process::id()), str::to_string),
-        expected_model_config,
-        collective_timeout: Duration::from_secs_f64(timeout),
-        scratch,
-        metrics_address: flags.get("metrics-address").map(str::to_string),
-        tls: tls_options(&flags)?,
-    };
-    run(options)
+    run(cli.daemon.into_options()?)
 }

@@ -9,52 +9,76 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, bail};
+use clap::Parser;
+use coordinator::config::ModelPreset;
 use coordinator::local::{LocalJob, free_port};
 use coordinator::progress;
 use proto::v1::StatusRequest;
 use proto::v1::coordinator_client::CoordinatorClient;
-use telemetry::cli::{Flags, init_logging};
+use telemetry::logging::LogArgs;
 
-const USAGE: &str =
-    "usage: xfactor-local [--dir DIR] [--workers N] [--stage1-steps N] [--stage2-steps N]
-                     [--preset tiny|benchmark|paper] [--image-size PX]
-                     [--global-batch N] [--micro-batch N] [--no-evaluate]";
+/// Folder of the run when `--dir` is not given.
+const DEFAULT_DIR: &str = "xfactor-local-run";
+
+/// The local job's settings before any flag, whose values `--help` shows as defaults.
+fn defaults() -> LocalJob {
+    LocalJob::new(Path::new(DEFAULT_DIR), 0)
+}
+
+/// Checks a `--preset` against the cluster YAML's `model.preset` names.
+fn preset_name(name: &str) -> Result<String, serde_norway::Error> {
+    serde_norway::from_str::<ModelPreset>(name).map(|_| name.to_string())
+}
+
+/// Runs the whole system on one machine: generates a small RE10K-layout dataset, writes its
+/// cluster YAML, and runs a coordinator and worker processes on loopback through both stages.
+#[derive(Debug, Parser)]
+#[command(name = "xfactor-local", version)]
+struct Cli {
+    /// Folder for the data, the YAML, the logs, the checkpoints and the report
+    #[arg(long, value_name = "DIR", default_value = DEFAULT_DIR)]
+    dir: PathBuf,
+    /// Worker processes
+    #[arg(long, value_name = "N", default_value_t = defaults().workers)]
+    workers: usize,
+    /// Steps of stage 1
+    #[arg(long, value_name = "N", default_value_t = defaults().stage1_steps)]
+    stage1_steps: u64,
+    /// Steps of stage 2
+    #[arg(long, value_name = "N", default_value_t = defaults().stage2_steps)]
+    stage2_steps: u64,
+    /// Model preset: tiny, benchmark or paper
+    #[arg(long, value_name = "PRESET", default_value_t = defaults().preset, value_parser = preset_name)]
+    preset: String,
+    /// Training resolution in pixels
+    #[arg(long, value_name = "PX", default_value_t = defaults().image_size)]
+    image_size: usize,
+    /// Samples per step over all workers
+    #[arg(long, value_name = "N", default_value_t = defaults().global_batch)]
+    global_batch: u64,
+    /// Samples per forward pass
+    #[arg(long, value_name = "N", default_value_t = defaults().micro_batch)]
+    micro_batch: u64,
+    /// Skips the evaluation stage
+    #[arg(long)]
+    no_evaluate: bool,
+    #[command(flatten)]
+    log: LogArgs,
+}
 
 fn main() -> anyhow::Result<()> {
-    let args: Vec<String> = std::env::args().skip(1).collect();
-    let flags = Flags::parse(
-        &args,
-        &["no-evaluate"],
-        &[
-            "dir",
-            "workers",
-            "stage1-steps",
-            "stage2-steps",
-            "preset",
-            "image-size",
-            "global-batch",
-            "micro-batch",
-        ],
-    )
-    .map_err(|e| anyhow::anyhow!("{e}\n{USAGE}"))?;
-    init_logging(None).map_err(anyhow::Error::msg)?;
-    let dir = PathBuf::from(flags.get("dir").unwrap_or("xfactor-local-run"));
+    let cli = Cli::parse();
+    cli.log.init()?;
+    let dir = cli.dir;
     let mut job = LocalJob::new(&dir, free_port()?);
-    let number = |name: &str, default: u64| -> anyhow::Result<u64> {
-        flags.get(name).map_or(Ok(default), |v| {
-            v.parse().with_context(|| format!("--{name} `{v}`"))
-        })
-    };
-    job.workers = number("workers", 2)? as usize;
-    job.stage1_steps = number("stage1-steps", job.stage1_steps)?;
-    job.stage2_steps = number("stage2-steps", job.stage2_steps)?;
-    job.global_batch = number("global-batch", job.global_batch)?;
-    job.micro_batch = number("micro-batch", job.micro_batch)?;
-    job.image_size = number("image-size", job.image_size as u64)? as usize;
-    job.evaluate = !flags.has("no-evaluate");
-    if let Some(preset) = flags.get("preset") {
-        job.preset = preset.to_string();
-    }
+    job.workers = cli.workers;
+    job.stage1_steps = cli.stage1_steps;
+    job.stage2_steps = cli.stage2_steps;
+    job.global_batch = cli.global_batch;
+    job.micro_batch = cli.micro_batch;
+    job.image_size = cli.image_size;
+    job.evaluate = !cli.no_evaluate;
+    job.preset = cli.preset;
     if job.checkpoint_dir().exists() {
         std::fs::remove_dir_all(job.checkpoint_dir())?;
     }

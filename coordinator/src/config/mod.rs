@@ -131,7 +131,9 @@ impl AuthConfig {
     pub fn resolve(&self) -> Result<String, TokenNotSet> {
         match self {
             Self::Token(token) => Ok(token.0.clone()),
-            Self::TokenEnv(name) => std::env::var(&name.0).map_err(|_| TokenNotSet(name.0.clone())),
+            Self::TokenEnv(name) => {
+                proto::auth::token_from_env(&name.0).map_err(|_| TokenNotSet(name.0.clone()))
+            }
         }
     }
 }

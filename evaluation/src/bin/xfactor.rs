@@ -3,143 +3,153 @@
 //! `xfactor transfer` renders a scene along the camera motion of another video;
 //! `xfactor evaluate` runs the paper's evaluation of a checkpoint on generated scenes.
 
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 
-use anyhow::{Context, bail};
+use anyhow::Context;
+use clap::{Parser, Subcommand, ValueEnum};
 use evaluation::evaluate::read_spec;
 use evaluation::{Sampling, TransferRequest, run_evaluation, run_transfer_sampled};
 use settings::evaluation::OracleSpec;
-use telemetry::cli::{Flags, init_logging};
-use trainer_core::backend::BackendChoice;
+use telemetry::logging::LogArgs;
+use trainer_core::backend::BackendArgs;
 
-const USAGE: &str = "usage:
-  xfactor transfer --checkpoint MODEL.safetensors --trajectory VIDEO|DIR|URI --scene VIDEO|IMAGE|DIR|URI
-                   --out DIR [--frames N] [--scene-frames N] [--reference N] [--backend cpu|wgpu]
-                   [--log-format human|json]
-      videos (.mp4, .mov, .mkv, ... through ffmpeg): --frames evenly spaced trajectory frames
-      (default 30), --scene-frames scene frames (default 1); writes frames/, strip.png,
-      transfer.gif and transfer.mp4 under --out. Example:
-      xfactor transfer --checkpoint ckpt/model.safetensors --trajectory walk.mp4 \
-          --scene room.mp4 --frames 30 --out transfer-out
-  xfactor evaluate --checkpoint MODEL.safetensors --out DIR [--spec SPEC.json]
-                   [--oracle ground_truth|classical] [--oracle-command PROGRAM] [--lpips WEIGHTS]
-                   [--backend cpu|wgpu] [--log-format human|json]";
+/// Trajectory transfer and the paper's evaluation of an XFactor checkpoint.
+#[derive(Debug, Parser)]
+#[command(
+    name = "xfactor",
+    version,
+    after_help = "Example: render a scene along the camera path of a video (videos are decoded through ffmpeg):
+  xfactor transfer --checkpoint ckpt/model.safetensors --trajectory walk.mp4 \\
+      --scene room.mp4 --frames 30 --out transfer-out
+writes frames/, strip.png, transfer.gif and transfer.mp4 under --out"
+)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Debug, Subcommand)]
+enum Command {
+    /// Renders a scene along the camera motion of another video
+    Transfer(TransferArgs),
+    /// Runs the paper's evaluation of a checkpoint on generated scenes
+    Evaluate(EvaluateArgs),
+}
+
+#[derive(Debug, clap::Args)]
+struct TransferArgs {
+    /// Model weights, with their .json configuration beside them
+    #[arg(long, value_name = "MODEL.safetensors")]
+    checkpoint: PathBuf,
+    /// The video whose camera motion is taken: a video file (.mp4, .mov, .mkv, ...), a frame
+    /// folder or an object-store URI
+    #[arg(long, value_name = "VIDEO|DIR|URI")]
+    trajectory: String,
+    /// The scene to move through: one image, a video file, or a frame folder or URI
+    #[arg(long, value_name = "VIDEO|IMAGE|DIR|URI")]
+    scene: String,
+    /// Folder the outputs are written to (created if needed)
+    #[arg(long, value_name = "DIR")]
+    out: PathBuf,
+    /// Frame of the trajectory the motion is measured from
+    #[arg(long, value_name = "N", default_value_t = 0)]
+    reference: usize,
+    /// Evenly spaced trajectory frames (by default 30 of a video, every frame of a folder)
+    #[arg(long, value_name = "N")]
+    frames: Option<usize>,
+    /// Evenly spaced scene frames (by default the first frame of a video, every frame of a
+    /// folder)
+    #[arg(long, value_name = "N")]
+    scene_frames: Option<usize>,
+    #[command(flatten)]
+    backend: BackendArgs,
+    #[command(flatten)]
+    log: LogArgs,
+}
+
+/// The built-in pose oracles `--oracle` names.
+#[derive(Debug, Clone, Copy, ValueEnum)]
+enum Oracle {
+    /// Render-and-compare against the generated frames of known pose
+    #[value(name = "ground_truth")]
+    GroundTruth,
+    /// Feature matching and essential matrices at the generated scenes' field of view
+    Classical,
+}
+
+#[derive(Debug, clap::Args)]
+struct EvaluateArgs {
+    /// Model weights, with their .json configuration beside them
+    #[arg(long, value_name = "MODEL.safetensors")]
+    checkpoint: PathBuf,
+    /// Folder the report and figures are written to (created if needed)
+    #[arg(long, value_name = "DIR")]
+    out: PathBuf,
+    /// Evaluation settings (JSON; by default the paper's)
+    #[arg(long, value_name = "SPEC.json")]
+    spec: Option<PathBuf>,
+    /// Pose oracle instead of the spec's
+    #[arg(long, value_enum)]
+    oracle: Option<Oracle>,
+    /// External pose-oracle program instead of the spec's
+    #[arg(long, value_name = "PROGRAM", conflicts_with = "oracle")]
+    oracle_command: Option<String>,
+    /// LPIPS weights (safetensors) instead of the spec's
+    #[arg(long, value_name = "WEIGHTS")]
+    lpips: Option<PathBuf>,
+    #[command(flatten)]
+    backend: BackendArgs,
+    #[command(flatten)]
+    log: LogArgs,
+}
 
 fn main() -> anyhow::Result<()> {
-    let args: Vec<String> = std::env::args().skip(1).collect();
-    let Some((command, rest)) = args.split_first() else {
-        bail!("{USAGE}");
-    };
-    match command.as_str() {
-        "transfer" => transfer(rest),
-        "evaluate" => evaluate(rest),
-        "--help" | "-h" | "help" => {
-            println!("{USAGE}");
-            Ok(())
-        }
-        other => bail!("unknown command `{other}`\n{USAGE}"),
+    match Cli::parse().command {
+        Command::Transfer(args) => transfer(args),
+        Command::Evaluate(args) => evaluate(args),
     }
 }
 
-/// Parses a subcommand's `--name value` flags and starts logging as `--log-format` asks.
-fn parse_flags(args: &[String], values: &[&str]) -> anyhow::Result<Flags> {
-    let flags = Flags::parse(args, &[], values).map_err(|e| anyhow::anyhow!("{e}\n{USAGE}"))?;
-    init_logging(flags.get("log-format")).map_err(anyhow::Error::msg)?;
-    Ok(flags)
-}
-
-/// A flag the subcommand cannot do without, with the usage in the error.
-fn required<'a>(flags: &'a Flags, name: &str) -> anyhow::Result<&'a str> {
-    flags
-        .require(name)
-        .map_err(|e| anyhow::anyhow!("{e}\n{USAGE}"))
-}
-
-fn backend(flags: &Flags) -> anyhow::Result<BackendChoice> {
-    Ok(flags.get("backend").unwrap_or("cpu").parse()?)
-}
-
-fn transfer(args: &[String]) -> anyhow::Result<()> {
-    let flags = parse_flags(
-        args,
-        &[
-            "checkpoint",
-            "trajectory",
-            "scene",
-            "out",
-            "reference",
-            "frames",
-            "scene-frames",
-            "backend",
-            "log-format",
-        ],
-    )?;
-    let required = |name: &str| required(&flags, name);
-    let count = |name: &str| {
-        flags
-            .get(name)
-            .map(str::parse::<usize>)
-            .transpose()
-            .with_context(|| format!("--{name} must be a whole number"))
+fn transfer(args: TransferArgs) -> anyhow::Result<()> {
+    args.log.init()?;
+    let request = TransferRequest {
+        checkpoint: args.checkpoint,
+        trajectory: args.trajectory,
+        scene: args.scene,
+        reference: args.reference,
+        out_dir: args.out,
     };
     let sampling = Sampling {
-        frames: count("frames")?,
-        scene_frames: count("scene-frames")?,
+        frames: args.frames,
+        scene_frames: args.scene_frames,
     };
-    let request = TransferRequest {
-        checkpoint: PathBuf::from(required("checkpoint")?),
-        trajectory: required("trajectory")?.to_string(),
-        scene: required("scene")?.to_string(),
-        reference: flags
-            .get("reference")
-            .map_or(Ok(0), str::parse)
-            .context("--reference must be a frame number")?,
-        out_dir: PathBuf::from(required("out")?),
-    };
-    let device = backend(&flags)?.device();
+    let device = args.backend.backend.device();
     let output = run_transfer_sampled(&request, &sampling, &device)
         .with_context(|| format!("transferring {} into {}", request.trajectory, request.scene))?;
     println!("{}", serde_json::to_string_pretty(&output)?);
     Ok(())
 }
 
-fn evaluate(args: &[String]) -> anyhow::Result<()> {
-    let flags = parse_flags(
-        args,
-        &[
-            "checkpoint",
-            "out",
-            "spec",
-            "oracle",
-            "oracle-command",
-            "lpips",
-            "backend",
-            "log-format",
-        ],
-    )?;
-    let required = |name: &str| required(&flags, name);
-    let checkpoint = PathBuf::from(required("checkpoint")?);
-    let out = PathBuf::from(required("out")?);
-    let mut spec = read_spec(flags.get("spec").map(Path::new))?;
-    match (flags.get("oracle"), flags.get("oracle-command")) {
-        (Some(_), Some(_)) => bail!("give --oracle or --oracle-command, not both"),
-        (Some("ground_truth"), None) => spec.oracle = OracleSpec::GroundTruth,
-        (Some("classical"), None) => spec.oracle = OracleSpec::Classical,
-        (Some(other), None) => bail!("--oracle `{other}`: expected ground_truth or classical"),
+fn evaluate(args: EvaluateArgs) -> anyhow::Result<()> {
+    args.log.init()?;
+    let mut spec = read_spec(args.spec.as_deref())?;
+    match (args.oracle, args.oracle_command) {
+        (Some(Oracle::GroundTruth), _) => spec.oracle = OracleSpec::GroundTruth,
+        (Some(Oracle::Classical), _) => spec.oracle = OracleSpec::Classical,
         (None, Some(program)) => {
             spec.oracle = OracleSpec::External {
-                program: program.to_string(),
+                program,
                 args: Vec::new(),
             }
         }
         (None, None) => {}
     }
-    if let Some(lpips) = flags.get("lpips") {
-        spec.lpips_weights = Some(PathBuf::from(lpips));
+    if let Some(lpips) = args.lpips {
+        spec.lpips_weights = Some(lpips);
     }
-    let device = backend(&flags)?.device();
-    let report = run_evaluation(&spec, &checkpoint, &out, &device)
-        .with_context(|| format!("evaluating {}", checkpoint.display()))?;
+    let device = args.backend.backend.device();
+    let report = run_evaluation(&spec, &args.checkpoint, &args.out, &device)
+        .with_context(|| format!("evaluating {}", args.checkpoint.display()))?;
     print!("{}", evaluation::evaluate::markdown(&report));
     Ok(())
 }

@@ -4,12 +4,25 @@
 use std::path::PathBuf;
 use std::process::ExitCode;
 
-use anyhow::{Context, bail};
-use trainer_core::backend::BackendChoice;
+use anyhow::Context;
+use clap::Parser;
+use trainer_core::backend::BackendArgs;
 use trainer_core::parity::{GRADIENT_TOLERANCE, OUTPUT_TOLERANCE, check_fixture};
 
+/// Checks the model against a fixture of the authors' layout; exits 1 when any output or
+/// gradient is out of tolerance, 2 on an error.
+#[derive(Debug, Parser)]
+#[command(name = "xfactor-check", version)]
+struct Cli {
+    /// The fixture; FIXTURE.json beside it holds its configuration
+    #[arg(value_name = "FIXTURE.safetensors")]
+    fixture: PathBuf,
+    #[command(flatten)]
+    backend: BackendArgs,
+}
+
 fn main() -> ExitCode {
-    match run() {
+    match run(Cli::parse()) {
         Ok(true) => ExitCode::SUCCESS,
         Ok(false) => ExitCode::from(1),
         Err(error) => {
@@ -19,28 +32,9 @@ fn main() -> ExitCode {
     }
 }
 
-fn run() -> anyhow::Result<bool> {
-    let mut fixture: Option<PathBuf> = None;
-    let mut backend = BackendChoice::Cpu;
-    let mut args = std::env::args().skip(1);
-    while let Some(arg) = args.next() {
-        match arg.as_str() {
-            "--backend" => {
-                let name = args
-                    .next()
-                    .context("--backend needs a value (cpu or wgpu)")?;
-                backend = name.parse()?;
-            }
-            "-h" | "--help" => {
-                println!("usage: xfactor-check FIXTURE.safetensors [--backend cpu|wgpu]");
-                println!("  FIXTURE.json beside the file holds its configuration.");
-                return Ok(true);
-            }
-            _ if fixture.is_none() => fixture = Some(PathBuf::from(arg)),
-            _ => bail!("unexpected argument `{arg}` (see --help)"),
-        }
-    }
-    let fixture = fixture.context("missing FIXTURE.safetensors (see --help)")?;
+fn run(cli: Cli) -> anyhow::Result<bool> {
+    let Cli { fixture, backend } = cli;
+    let backend = backend.backend;
     let report = check_fixture(&fixture, &backend.device())
         .with_context(|| format!("checking {}", fixture.display()))?;
 

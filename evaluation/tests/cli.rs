@@ -1,0 +1,71 @@
+//! `xfactor transfer|evaluate`: every flag in `--help` with its default, and bad values
+//! refused by the parser naming the flag.
+
+#[path = "../../test-support/help.rs"]
+mod help;
+
+const XFACTOR: &str = env!("CARGO_BIN_EXE_xfactor");
+
+#[test]
+fn help_lists_every_flag_with_its_default() {
+    help::assert_flags(
+        XFACTOR,
+        &["transfer"],
+        &[
+            ("--checkpoint", None),
+            ("--trajectory", None),
+            ("--scene", None),
+            ("--out", None),
+            ("--reference", Some("0")),
+            ("--backend", Some("cpu")),
+            ("--log-format", Some("human")),
+        ],
+    );
+    help::assert_flags(
+        XFACTOR,
+        &["evaluate"],
+        &[
+            ("--checkpoint", None),
+            ("--out", None),
+            ("--spec", None),
+            ("--oracle", None),
+            ("--oracle-command", None),
+            ("--lpips", None),
+            ("--backend", Some("cpu")),
+            ("--log-format", Some("human")),
+        ],
+    );
+}
+
+#[test]
+fn bad_values_are_refused_naming_the_flag() {
+    let evaluate = ["evaluate", "--checkpoint", "m.safetensors", "--out", "o"];
+    for (bad, flag) in [
+        (&["--backend", "tpu"][..], "--backend"),
+        (&["--oracle", "colmap"][..], "--oracle"),
+        (
+            &["--oracle", "classical", "--oracle-command", "p"][..],
+            "--oracle-command",
+        ),
+    ] {
+        help::assert_refused(XFACTOR, &[&evaluate[..], bad].concat(), flag);
+    }
+    help::assert_refused(XFACTOR, &["evaluate", "--out", "o"], "--checkpoint");
+    help::assert_refused(
+        XFACTOR,
+        &[
+            "transfer",
+            "--checkpoint",
+            "m",
+            "--trajectory",
+            "t",
+            "--scene",
+            "s",
+            "--out",
+            "o",
+            "--reference",
+            "first",
+        ],
+        "--reference",
+    );
+}
