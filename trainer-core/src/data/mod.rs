@@ -3,13 +3,16 @@
 
 pub mod cache;
 pub mod decode;
+pub mod frame_order;
 pub mod index;
 pub mod manifest;
 pub mod prefetch;
+pub mod resize;
 pub mod sampler;
 pub mod shard;
 pub mod source;
 pub mod spec;
+pub mod split;
 pub mod store;
 
 pub use manifest::{DatasetKind, Manifest, Sequence, Split};
