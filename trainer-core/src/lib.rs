@@ -12,6 +12,7 @@ pub mod config;
 pub mod data;
 pub mod flat;
 pub mod flax;
+pub mod import;
 pub mod lpips;
 pub mod model;
 pub mod objective;

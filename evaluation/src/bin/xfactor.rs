@@ -1,7 +1,8 @@
 //! `xfactor`: the user-facing tool of the evaluation crate.
 //!
 //! `xfactor transfer` renders a scene along the camera motion of another video;
-//! `xfactor evaluate` runs the paper's evaluation of a checkpoint on generated scenes.
+//! `xfactor evaluate` runs the paper's evaluation of a checkpoint on generated scenes;
+//! `xfactor import-checkpoint` turns the authors' released clu checkpoint into ours.
 
 use std::path::{Path, PathBuf};
 
@@ -17,7 +18,8 @@ const USAGE: &str = "usage:
                    [--reference N] [--backend cpu|wgpu] [--log-format human|json]
   xfactor evaluate --checkpoint MODEL.safetensors --out DIR [--spec SPEC.json]
                    [--oracle ground_truth|classical] [--oracle-command PROGRAM] [--lpips WEIGHTS]
-                   [--backend cpu|wgpu] [--log-format human|json]";
+                   [--backend cpu|wgpu] [--log-format human|json]
+  xfactor import-checkpoint CLU_DIR --out DIR [--image-size 256] [--log-format human|json]";
 
 fn main() -> anyhow::Result<()> {
     let args: Vec<String> = std::env::args().skip(1).collect();
@@ -27,6 +29,7 @@ fn main() -> anyhow::Result<()> {
     match command.as_str() {
         "transfer" => transfer(rest),
         "evaluate" => evaluate(rest),
+        "import-checkpoint" => import_checkpoint(rest),
         "--help" | "-h" | "help" => {
             println!("{USAGE}");
             Ok(())
@@ -122,5 +125,34 @@ fn evaluate(args: &[String]) -> anyhow::Result<()> {
     let report = run_evaluation(&spec, &checkpoint, &out, &device)
         .with_context(|| format!("evaluating {}", checkpoint.display()))?;
     print!("{}", evaluation::evaluate::markdown(&report));
+    Ok(())
+}
+
+fn import_checkpoint(args: &[String]) -> anyhow::Result<()> {
+    let Some((dir, rest)) = args.split_first().filter(|(dir, _)| !dir.starts_with("--")) else {
+        bail!("import-checkpoint needs the clu checkpoint directory first\n{USAGE}");
+    };
+    let flags = parse_flags(rest, &["out", "image-size", "log-format"])?;
+    let out = PathBuf::from(required(&flags, "out")?);
+    let image_size = flags
+        .get("image-size")
+        .map_or(Ok(256), str::parse)
+        .context("--image-size must be a number of pixels")?;
+    let imported = trainer_core::import::read_clu(Path::new(dir), image_size)
+        .with_context(|| format!("importing {dir}"))?;
+    imported
+        .write(&out, &BackendChoice::Cpu.device())
+        .with_context(|| format!("writing {}", out.display()))?;
+    println!(
+        "imported={} out={} width={} layers={}+{} step={} updates={} lpips={}",
+        imported.source.display(),
+        out.display(),
+        imported.config.width,
+        imported.config.pose_layers,
+        imported.config.render_layers,
+        imported.step,
+        imported.updates,
+        !imported.lpips.is_empty()
+    );
     Ok(())
 }
