@@ -1,6 +1,7 @@
 //! Which frames of which sequence a training sample uses: the per-dataset window sampler with
-//! its curriculum, the mixture over datasets, stage 2's long-baseline weighting and reference
-//! band.
+//! its curriculum, the mixture over datasets, stage 2's long-baseline weighting, and an optional
+//! reference band (off in both stages: the release's config defines one but never passes it to
+//! its sampler).
 
 use serde::{Deserialize, Serialize};
 
@@ -33,8 +34,8 @@ pub struct SamplerConfig {
     pub reverse_probability: f64,
     /// Favour long windows with `0.8 exp(-((u - 0.7) / 0.25)^2) + 0.2` (stage 2).
     pub long_baseline: bool,
-    /// Keep the reference (middlest) frame within `band * window / 2` of both ends (stage 2:
-    /// `1.25`).
+    /// Keep the reference (middlest) frame within `band * window / 2` of both ends. Off by
+    /// default: the release's `GAP_SIGMA = 1.25` never reaches its sampler.
     pub reference_band: Option<f64>,
     /// Per-dataset settings.
     pub datasets: Vec<DatasetSampling>,
@@ -74,14 +75,15 @@ impl SamplerConfig {
     }
 
     /// Stage 2: 6 frames; CO3Dv2 `9 -> 40` (2), DL3DV `6 -> 20` (5), RE10K `40 -> 200` (3),
-    /// MVImgNet `6 -> 20` (2); long baselines favoured; reference band 1.25.
+    /// MVImgNet `6 -> 20` (2); long baselines favoured; interior frames uniform (no reference
+    /// band, as the release samples).
     pub fn stage2() -> Self {
         Self {
             frames: 6,
             curriculum_steps: 50_000,
             reverse_probability: 0.5,
             long_baseline: true,
-            reference_band: Some(1.25),
+            reference_band: None,
             datasets: datasets([
                 (DatasetKind::Co3dv2, 2.0, 9, 40),
                 (DatasetKind::Dl3dv, 5.0, 6, 20),
@@ -118,7 +120,8 @@ impl SamplerConfig {
         candidates.last().map(|d| d.dataset)
     }
 
-    /// The largest window length of `dataset` at `step` (linear ramp, then constant).
+    /// The largest window length of `dataset` at `step` (linear ramp, then constant), truncated
+    /// to a whole length as the release's `int(...)` does.
     pub fn max_window(&self, dataset: &DatasetSampling, step: u64) -> usize {
         let progress = if self.curriculum_steps == 0 {
             1.0
@@ -127,7 +130,7 @@ impl SamplerConfig {
         };
         let begin = dataset.window_begin as f64;
         let end = dataset.window_end as f64;
-        (begin + (end - begin) * progress).round() as usize
+        (begin + (end - begin) * progress) as usize
     }
 
     /// Draws the frames of one sample from a sequence of `length` frames of `dataset` at `step`.
@@ -280,12 +283,36 @@ mod tests {
     }
 
     #[test]
-    fn stage2_favours_long_windows_and_keeps_a_central_reference() {
+    fn the_curriculum_ramp_truncates() {
+        let config = SamplerConfig::stage1();
+        let co3d = config.dataset(DatasetKind::Co3dv2).unwrap();
+        // 9 + 11 * 0.3 = 12.3 -> 12; 9 + 11 * 0.5 = 14.5 -> 14 (rounding would give 15).
+        assert_eq!(config.max_window(co3d, 15_000), 12);
+        assert_eq!(config.max_window(co3d, 25_000), 14);
+    }
+
+    /// Whether the most central interior frame of a stage-2 draw lies within
+    /// `1.25 * window / 2` of both ends (what a reference band would enforce).
+    fn central_reference(draw: &WindowDraw) -> bool {
+        let mut sorted = draw.frames.clone();
+        sorted.sort_unstable();
+        let (first, last) = (sorted[0], sorted[sorted.len() - 1]);
+        let best = sorted[1..sorted.len() - 1]
+            .iter()
+            .map(|&f| (f - first).max(last - f))
+            .min()
+            .unwrap_or(0);
+        best as f64 <= 1.25 * draw.window as f64 / 2.0
+    }
+
+    #[test]
+    fn stage2_favours_long_windows_with_uniform_interior_frames() {
         let config = SamplerConfig::stage2();
+        assert_eq!(config.reference_band, None);
         let dl3dv = config.dataset(DatasetKind::Dl3dv).unwrap();
-        let mut long = 0;
-        let mut short = 0;
-        for sample in 0..20_000u64 {
+        let (mut long, mut short, mut off_band) = (0, 0, 0);
+        let draws = 20_000u64;
+        for sample in 0..draws {
             let draw = config
                 .draw_window(dl3dv, 100, 60_000, &mut Stream::new(&[4, sample]))
                 .unwrap();
@@ -294,14 +321,8 @@ mod tests {
             sorted.sort_unstable();
             sorted.dedup();
             assert_eq!(sorted.len(), 6, "distinct frames");
-            let (first, last) = (sorted[0], sorted[5]);
-            assert_eq!(last - first + 1, draw.window);
-            let best = sorted[1..5]
-                .iter()
-                .map(|&f| (f - first).max(last - f))
-                .min()
-                .unwrap();
-            assert!(best as f64 <= 1.25 * draw.window as f64 / 2.0);
+            assert_eq!(sorted[5] - sorted[0] + 1, draw.window);
+            off_band += usize::from(!central_reference(&draw));
             // Allowed lengths 6..=20: u = 0.7 is length 15.8, u = 0 is length 6.
             long += usize::from(draw.window == 16);
             short += usize::from(draw.window == 6);
@@ -312,5 +333,19 @@ mod tests {
             (ratio - expected).abs() < 0.25 * expected,
             "{ratio} vs {expected}"
         );
+        // Without a band, four uniform interior frames all miss the central zone now and then.
+        assert!(off_band > draws as usize / 200, "{off_band} of {draws}");
+
+        // With the band switched on, every draw keeps a central reference.
+        let banded = SamplerConfig {
+            reference_band: Some(1.25),
+            ..SamplerConfig::stage2()
+        };
+        for sample in 0..2_000u64 {
+            let draw = banded
+                .draw_window(dl3dv, 100, 60_000, &mut Stream::new(&[4, sample]))
+                .unwrap();
+            assert!(central_reference(&draw), "{draw:?}");
+        }
     }
 }
