@@ -16,6 +16,7 @@ pub use error::EvalError;
 pub use transfer::{TransferOutput, TransferRequest, run_transfer};
 pub mod evaluate;
 pub mod probe;
+pub mod so3;
 pub mod tps;
 
 pub use evaluate::{EvaluationReport, EvaluationSpec, run_evaluation};
