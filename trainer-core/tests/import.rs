@@ -80,20 +80,17 @@ fn import_recovers_every_tensor_of_the_latest_checkpoint() {
         imported.step
     );
 
-    // The other checkpoint in the directory holds different weights: picking it would fail.
+    // The other checkpoint in the directory is an older state without the LPIPS weights:
+    // importing it instead would lose them.
     let older = trainer_core::import::flax_state::FlaxState::parse(
         &std::fs::read(dir.join("checkpoints-0/ckpt-2.flax")).unwrap(),
     )
     .unwrap();
-    let differing = expected
-        .names_with_prefix("params.")
-        .filter(|name| {
-            older.tensor(name).map(|t| &t.values) != Some(&expected.require(name).unwrap().values)
-        })
-        .count();
-    assert!(
-        differing > 0,
-        "ckpt-2 must differ for this test to mean anything"
+    assert_eq!(older.tensors_under("lpips_params.").count(), 0);
+    assert_eq!(
+        imported.lpips.len(),
+        31,
+        "13 convolutions x 2 + 5 linear heads"
     );
 }
 
@@ -192,39 +189,58 @@ fn one_update_from_the_imported_optimiser_state_matches_optax() {
     let (model, report) = optimizer.step(model, &grads, lr);
     assert!(report.applied);
     let after = named_parameters(&model);
-    let (mut worst_param, mut worst_update) = (0.0f32, 0.0f32);
+    let model_scale = after
+        .values()
+        .flat_map(|t| t.values.iter())
+        .fold(0.0f32, |m, v| m.max(v.abs()));
+    let (mut worst_param, mut worst_update, mut resolved) = (0.0f32, 0.0f64, 0);
     for (name, ours) in &after {
         let theirs = expected.require(&format!("step3.params.{name}")).unwrap();
-        let scale = theirs.max_abs().max(f32::MIN_POSITIVE);
         let param_error = ours
             .values
             .iter()
             .zip(&theirs.values)
             .fold(0.0f32, |m, (a, b)| m.max((a - b).abs()))
-            / scale;
-        // The update itself (new minus old), so a test that skipped the step would fail.
+            / model_scale;
+        worst_param = worst_param.max(param_error);
+        assert!(
+            param_error <= 1e-6,
+            "{name}: off by {param_error:e} of the largest weight"
+        );
+        // The update itself (new minus old) where float32 resolves it: tensors of small values
+        // (biases), whose spacing is far below the ~2e-7 step. A skipped or mis-scaled update
+        // fails here even though it is below 1e-6 of the weights.
         let old = &before[name].values;
-        let their_update: Vec<f32> = theirs.values.iter().zip(old).map(|(a, b)| a - b).collect();
-        let update_scale = their_update.iter().fold(0.0f32, |m, v| m.max(v.abs()));
-        let update_error = ours
+        if theirs.max_abs() > 1e-3 {
+            continue;
+        }
+        resolved += 1;
+        let their_update: Vec<f64> = theirs
             .values
             .iter()
             .zip(old)
+            .map(|(a, b)| f64::from(a - b))
+            .collect();
+        let our_update: Vec<f64> = ours
+            .values
+            .iter()
+            .zip(old)
+            .map(|(a, b)| f64::from(a - b))
+            .collect();
+        let scale = their_update.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+        let error = our_update
+            .iter()
             .zip(&their_update)
-            .fold(0.0f32, |m, ((a, b), u)| m.max(((a - b) - u).abs()))
-            / update_scale.max(f32::MIN_POSITIVE);
-        worst_param = worst_param.max(param_error);
-        worst_update = worst_update.max(update_error);
-        assert!(
-            param_error <= 1e-6,
-            "{name}: parameters off by {param_error:e} (relative)"
-        );
+            .fold(0.0f64, |m, (a, b)| m.max((a - b).abs()))
+            / scale.max(f64::MIN_POSITIVE);
+        worst_update = worst_update.max(error);
     }
     println!(
-        "resumed update at step {step} (updates {updates}, lr {lr:e}): params_rel_err={worst_param:.2e} update_rel_err={worst_update:.2e}"
+        "resumed update at step {step} (updates {updates}, lr {lr:e}): params_err={worst_param:.2e} of the largest weight, update_rel_err={worst_update:.2e} over {resolved} small-valued tensors"
     );
+    assert!(resolved > 0);
     assert!(
-        worst_update <= 0.05,
+        worst_update <= 1e-3,
         "the update differs from optax's by {worst_update:e}"
     );
 }
