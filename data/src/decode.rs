@@ -1,11 +1,11 @@
-//! Frames from bytes: decode JPEG or PNG, centre-crop to a square, resize (bilinear, with the
-//! support widened when shrinking, as PIL and `jax.image.resize` do) to the training size, and
-//! map to the `[-1, 1]` channels-last layout the model takes.
+//! Frames from bytes: decode JPEG or PNG, centre-crop to a square and resize to the training
+//! size as the release does ([`super::resize`]: corner-aligned bilinear, no antialiasing,
+//! truncation to `u8`), and map to the `[-1, 1]` channels-last layout the model takes.
 
-use image::imageops::{self, FilterType};
 use image::{ImageReader, RgbImage};
 
 use crate::batch::Image;
+use crate::resize::center_crop_resize;
 
 /// Why a frame could not be turned into an image; the loader skips and counts such frames.
 #[derive(Debug, thiserror::Error)]
@@ -48,22 +48,15 @@ pub fn decode_frame(bytes: &[u8], path: &str, size: usize) -> Result<Image, Deco
 
 /// Centre-crops `rgb` to a square and resizes it to `size x size` in `[-1, 1]`.
 pub fn to_training_frame(rgb: &RgbImage, size: usize) -> Image {
-    let side = rgb.width().min(rgb.height());
-    let left = (rgb.width() - side) / 2;
-    let top = (rgb.height() - side) / 2;
-    let square = imageops::crop_imm(rgb, left, top, side, side).to_image();
-    let resized = if side as usize == size {
-        square
-    } else {
-        imageops::resize(&square, size as u32, size as u32, FilterType::Triangle)
-    };
+    let (height, width) = (rgb.height() as usize, rgb.width() as usize);
+    let resized = center_crop_resize(rgb.as_raw(), height, width, size);
     Image {
         height: size,
         width: size,
         pixels: resized
-            .into_raw()
+            .bytes
             .into_iter()
-            .map(|v| f32::from(v) * (2.0 / 255.0) - 1.0)
+            .map(|v| 2.0 * (f32::from(v) / 255.0) - 1.0)
             .collect(),
     }
 }

@@ -5,17 +5,21 @@
 //! - DL3DV: `training_256/{part}/{sequence}/images_8/*` with `transforms.json` beside
 //!   `images_8` (sequences without it are skipped); ids present under
 //!   `test_256/benchmark_960p/` are the test split and never train.
-//! - MVImgNet: `{category}/{scene}/images/NNN.jpg` (three-digit names), only scenes with a
-//!   COLMAP `sparse/` directory; the first 90% of scenes per category (sorted) train.
-//! - CO3Dv2: `{category}/{sequence}/images/frameNNNNNN.jpg`, sequences whose name starts with a
-//!   digit; the first 90% per category train; `{category}/frame_annotations.jgz` when present.
+//! - MVImgNet: `{category}/{scene}/images/NNN.jpg` (three-digit names); every scene counts (the
+//!   release's COLMAP `sparse/` filter is switched off); the first 90% of scenes per category
+//!   (sorted) train.
+//! - CO3Dv2: `{category}/{sequence}/images/frameNNNNNN.jpg`, only the release's 51 categories
+//!   ([`CO3DV2_CATEGORIES`]), sequences whose name starts with a digit; the first 90% per
+//!   category train; `{category}/frame_annotations.jgz` when present.
 //!
-//! Sequences shorter than [`MIN_FRAMES`] are dropped everywhere.
+//! Frames are ordered by the number in their names; sequences shorter than [`MIN_FRAMES`] are
+//! dropped everywhere.
 
 use std::collections::{BTreeMap, BTreeSet};
 
 use settings::data::DatasetKind;
 
+use crate::frame_order::sort_frames;
 use crate::manifest::{Manifest, Sequence, Split};
 use crate::store::{DataRoot, StoreError};
 
@@ -23,6 +27,60 @@ use crate::store::{DataRoot, StoreError};
 pub const MIN_FRAMES: usize = 10;
 /// Share of each category's sequences (sorted) that trains, for MVImgNet and CO3Dv2.
 const TRAIN_SHARE: f64 = 0.9;
+/// The CO3Dv2 categories the release trains on (its `CO3DV2_SEQ_NAMES`); others are skipped.
+pub const CO3DV2_CATEGORIES: [&str; 51] = [
+    "apple",
+    "tv",
+    "microwave",
+    "parkingmeter",
+    "baseballglove",
+    "baseballbat",
+    "hotdog",
+    "frisbee",
+    "pizza",
+    "kite",
+    "toybus",
+    "sandwich",
+    "toyplane",
+    "car",
+    "skateboard",
+    "cup",
+    "donut",
+    "stopsign",
+    "bicycle",
+    "banana",
+    "handbag",
+    "motorcycle",
+    "cake",
+    "toytrain",
+    "couch",
+    "broccoli",
+    "bottle",
+    "toaster",
+    "wineglass",
+    "hairdryer",
+    "bowl",
+    "carrot",
+    "laptop",
+    "hydrant",
+    "umbrella",
+    "bench",
+    "suitcase",
+    "toytruck",
+    "ball",
+    "orange",
+    "keyboard",
+    "cellphone",
+    "toilet",
+    "vase",
+    "backpack",
+    "mouse",
+    "chair",
+    "plant",
+    "teddybear",
+    "remote",
+    "book",
+];
 
 /// Why a dataset could not be indexed.
 #[derive(Debug, thiserror::Error)]
@@ -117,9 +175,7 @@ pub fn index_paths(dataset: DatasetKind, paths: &[&str]) -> Indexed {
         DatasetKind::Mvimgnet => category_layout(paths, dataset, |scene, name| {
             !scene.is_empty() && name.len() == 7 && name[..3].bytes().all(|b| b.is_ascii_digit())
         }),
-        DatasetKind::Co3dv2 => category_layout(paths, dataset, |sequence, name| {
-            sequence.starts_with(|c: char| c.is_ascii_digit()) && name.starts_with("frame")
-        }),
+        DatasetKind::Co3dv2 => co3dv2(paths),
     };
     let (kept, short): (Vec<Sequence>, Vec<Sequence>) = indexed
         .manifest
@@ -134,6 +190,30 @@ pub fn index_paths(dataset: DatasetKind, paths: &[&str]) -> Indexed {
     }));
     indexed.manifest.sequences = kept;
     indexed.manifest.sequences.sort_by(|a, b| a.id.cmp(&b.id));
+    indexed
+}
+
+/// CO3Dv2 restricted to [`CO3DV2_CATEGORIES`]; every other top-level folder is skipped.
+fn co3dv2(paths: &[&str]) -> Indexed {
+    let category = |path: &str| path.split('/').next().unwrap_or_default().to_string();
+    let (listed, other): (Vec<&str>, Vec<&str>) = paths
+        .iter()
+        .copied()
+        .partition(|p| CO3DV2_CATEGORIES.contains(&category(p).as_str()));
+    let mut indexed = category_layout(&listed, DatasetKind::Co3dv2, |sequence, name| {
+        sequence.starts_with(|c: char| c.is_ascii_digit()) && name.starts_with("frame")
+    });
+    let unlisted: BTreeSet<String> = other
+        .iter()
+        .filter(|p| p.contains('/'))
+        .map(|p| category(p))
+        .collect();
+    indexed.skipped.extend(unlisted.into_iter().map(|c| {
+        (
+            c,
+            "not one of the release's 51 CO3Dv2 categories".to_string(),
+        )
+    }));
     indexed
 }
 
@@ -158,7 +238,7 @@ fn re10k(paths: &[&str]) -> Indexed {
     let sequences = frames
         .into_iter()
         .map(|((split, sequence), mut files)| {
-            files.sort();
+            sort_frames(&mut files);
             let camera = format!("{split}/cameras/{sequence}.txt");
             Sequence {
                 dataset: DatasetKind::Re10k,
@@ -207,7 +287,7 @@ fn dl3dv(paths: &[&str]) -> Indexed {
             skipped.push((id, "no transforms.json beside images_8".to_string()));
             continue;
         }
-        files.sort();
+        sort_frames(&mut files);
         sequences.push(Sequence {
             dataset: DatasetKind::Dl3dv,
             split: if benchmark.contains(&sequence) {
@@ -269,16 +349,7 @@ fn category_layout(
     }
     let mut per_category: BTreeMap<String, Vec<(String, Vec<String>)>> = BTreeMap::new();
     for ((category, sequence), mut files) in frames {
-        if dataset == DatasetKind::Mvimgnet
-            && !sparse.contains(&(category.clone(), sequence.clone()))
-        {
-            skipped.push((
-                format!("{category}/{sequence}"),
-                "no COLMAP sparse/ directory".to_string(),
-            ));
-            continue;
-        }
-        files.sort();
+        sort_frames(&mut files);
         per_category
             .entry(category)
             .or_default()
@@ -289,7 +360,9 @@ fn category_layout(
         let train = (members.len() as f64 * TRAIN_SHARE) as usize;
         for (position, (sequence, files)) in members.into_iter().enumerate() {
             let poses = match dataset {
-                DatasetKind::Mvimgnet => Some(format!("{category}/{sequence}/sparse")),
+                DatasetKind::Mvimgnet => sparse
+                    .contains(&(category.clone(), sequence.clone()))
+                    .then(|| format!("{category}/{sequence}/sparse")),
                 _ => annotations
                     .contains(&category)
                     .then(|| format!("{category}/frame_annotations.jgz")),
@@ -383,32 +456,61 @@ mod tests {
     }
 
     #[test]
-    fn mvimgnet_needs_sparse_and_splits_ninety_ten_per_category() {
+    fn mvimgnet_counts_scenes_without_sparse_and_splits_ninety_ten_per_category() {
         let mut paths = Vec::new();
         for scene in 0..10 {
             paths.extend(frames(&format!("chair/s{scene:02}/images"), 10, |i| {
                 format!("{i:03}.jpg")
             }));
-            paths.push(format!("chair/s{scene:02}/sparse/0/cameras.bin"));
         }
-        paths.extend(frames("chair/nosparse/images", 10, |i| {
-            format!("{i:03}.jpg")
-        }));
+        paths.push("chair/s03/sparse/0/cameras.bin".to_string());
         paths.extend(frames("chair/badnames/images", 10, |i| {
             format!("img{i}.jpg")
         }));
-        paths.push("chair/badnames/sparse/0/cameras.bin".to_string());
         let indexed = index_strings(DatasetKind::Mvimgnet, &paths);
         let seqs = &indexed.manifest.sequences;
-        assert_eq!(seqs.len(), 10);
+        assert_eq!(seqs.len(), 10, "scenes without sparse/ count too");
         assert_eq!(seqs.iter().filter(|s| s.split == Split::Train).count(), 9);
         assert_eq!(seqs[9].id, "chair/s09");
         assert_eq!(seqs[9].split, Split::Test);
+        assert_eq!(seqs[3].poses.as_deref(), Some("chair/s03/sparse"));
+        assert_eq!(seqs[4].poses, None);
         let skipped: Vec<&str> = indexed.skipped.iter().map(|(id, _)| id.as_str()).collect();
-        assert!(
-            skipped.contains(&"chair/nosparse") && skipped.contains(&"chair/badnames"),
-            "{skipped:?}"
-        );
+        assert_eq!(skipped, vec!["chair/badnames"]);
+    }
+
+    #[test]
+    fn frames_are_ordered_by_the_number_in_their_name() {
+        let paths = frames("train/images/seq", 12, |i| format!("frame{}.png", 11 - i));
+        let indexed = index_strings(DatasetKind::Re10k, &paths);
+        let order: Vec<&str> = indexed.manifest.sequences[0]
+            .frames
+            .iter()
+            .map(|f| f.rsplit('/').next().unwrap_or_default())
+            .collect();
+        assert_eq!(order[9], "frame9.png");
+        assert_eq!(order[10], "frame10.png");
+        assert_eq!(order[11], "frame11.png");
+    }
+
+    #[test]
+    fn co3d_reads_only_the_release_categories() {
+        let mut paths = Vec::new();
+        for category in ["apple", "unicorn"] {
+            paths.extend(frames(&format!("{category}/100_1_2/images"), 12, |i| {
+                format!("frame{i:06}.jpg")
+            }));
+        }
+        let indexed = index_strings(DatasetKind::Co3dv2, &paths);
+        let ids: Vec<&str> = indexed
+            .manifest
+            .sequences
+            .iter()
+            .map(|s| s.id.as_str())
+            .collect();
+        assert_eq!(ids, vec!["apple/100_1_2"]);
+        assert_eq!(indexed.skipped[0].0, "unicorn");
+        assert_eq!(CO3DV2_CATEGORIES.len(), 51);
     }
 
     #[test]

@@ -11,15 +11,18 @@
 pub mod batch;
 pub mod cache;
 pub mod decode;
+pub mod frame_order;
 pub mod index;
 pub mod manifest;
 pub mod prefetch;
+pub mod resize;
 pub mod rng;
 pub mod sampler;
 pub mod scenes;
 pub mod shard;
 pub mod source;
 pub mod spec;
+pub mod split;
 pub mod store;
 pub mod synthetic;
 

@@ -1,6 +1,7 @@
 //! Which frames of which sequence a training sample uses: the per-dataset window sampler with
-//! its curriculum, the mixture over datasets, stage 2's long-baseline weighting and reference
-//! band.
+//! its curriculum, the mixture over datasets, stage 2's long-baseline weighting, and an optional
+//! reference band (off in both stages: the release's config defines one but never passes it to
+//! its sampler).
 
 use settings::data::{DatasetKind, DatasetSampling, SamplerConfig};
 
@@ -12,7 +13,8 @@ pub trait WindowSampler {
     /// Draws a dataset with probability proportional to its weight, among `available` ones.
     fn choose_dataset(&self, available: &[DatasetKind], stream: &mut Stream)
     -> Option<DatasetKind>;
-    /// The largest window length of `dataset` at `step` (linear ramp, then constant).
+    /// The largest window length of `dataset` at `step` (linear ramp, then constant), truncated
+    /// to a whole length as the release's `int(...)` does.
     fn max_window(&self, dataset: &DatasetSampling, step: u64) -> usize;
     /// Draws the frames of one sample from a sequence of `length` frames of `dataset` at `step`.
     /// Returns `None` when the sequence is shorter than `frames`.
@@ -55,7 +57,7 @@ impl WindowSampler for SamplerConfig {
         };
         let begin = dataset.window_begin as f64;
         let end = dataset.window_end as f64;
-        (begin + (end - begin) * progress).round() as usize
+        (begin + (end - begin) * progress) as usize
     }
 
     fn draw_window(
@@ -206,12 +208,36 @@ mod tests {
     }
 
     #[test]
-    fn stage2_favours_long_windows_and_keeps_a_central_reference() {
+    fn the_curriculum_ramp_truncates() {
+        let config = SamplerConfig::stage1();
+        let co3d = config.dataset(DatasetKind::Co3dv2).unwrap();
+        // 9 + 11 * 0.3 = 12.3 -> 12; 9 + 11 * 0.5 = 14.5 -> 14 (rounding would give 15).
+        assert_eq!(config.max_window(co3d, 15_000), 12);
+        assert_eq!(config.max_window(co3d, 25_000), 14);
+    }
+
+    /// Whether the most central interior frame of a stage-2 draw lies within
+    /// `1.25 * window / 2` of both ends (what a reference band would enforce).
+    fn central_reference(draw: &WindowDraw) -> bool {
+        let mut sorted = draw.frames.clone();
+        sorted.sort_unstable();
+        let (first, last) = (sorted[0], sorted[sorted.len() - 1]);
+        let best = sorted[1..sorted.len() - 1]
+            .iter()
+            .map(|&f| (f - first).max(last - f))
+            .min()
+            .unwrap_or(0);
+        best as f64 <= 1.25 * draw.window as f64 / 2.0
+    }
+
+    #[test]
+    fn stage2_favours_long_windows_with_uniform_interior_frames() {
         let config = SamplerConfig::stage2();
+        assert_eq!(config.reference_band, None);
         let dl3dv = config.dataset(DatasetKind::Dl3dv).unwrap();
-        let mut long = 0;
-        let mut short = 0;
-        for sample in 0..20_000u64 {
+        let (mut long, mut short, mut off_band) = (0, 0, 0);
+        let draws = 20_000u64;
+        for sample in 0..draws {
             let draw = config
                 .draw_window(dl3dv, 100, 60_000, &mut Stream::new(&[4, sample]))
                 .unwrap();
@@ -220,14 +246,8 @@ mod tests {
             sorted.sort_unstable();
             sorted.dedup();
             assert_eq!(sorted.len(), 6, "distinct frames");
-            let (first, last) = (sorted[0], sorted[5]);
-            assert_eq!(last - first + 1, draw.window);
-            let best = sorted[1..5]
-                .iter()
-                .map(|&f| (f - first).max(last - f))
-                .min()
-                .unwrap();
-            assert!(best as f64 <= 1.25 * draw.window as f64 / 2.0);
+            assert_eq!(sorted[5] - sorted[0] + 1, draw.window);
+            off_band += usize::from(!central_reference(&draw));
             // Allowed lengths 6..=20: u = 0.7 is length 15.8, u = 0 is length 6.
             long += usize::from(draw.window == 16);
             short += usize::from(draw.window == 6);
@@ -238,5 +258,19 @@ mod tests {
             (ratio - expected).abs() < 0.25 * expected,
             "{ratio} vs {expected}"
         );
+        // Without a band, four uniform interior frames all miss the central zone now and then.
+        assert!(off_band > draws as usize / 200, "{off_band} of {draws}");
+
+        // With the band switched on, every draw keeps a central reference.
+        let banded = SamplerConfig {
+            reference_band: Some(1.25),
+            ..SamplerConfig::stage2()
+        };
+        for sample in 0..2_000u64 {
+            let draw = banded
+                .draw_window(dl3dv, 100, 60_000, &mut Stream::new(&[4, sample]))
+                .unwrap();
+            assert!(central_reference(&draw), "{draw:?}");
+        }
     }
 }

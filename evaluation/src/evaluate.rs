@@ -15,7 +15,7 @@ use trainer_core::{XFactor, XFactorConfig, checkpoint};
 
 use crate::error::{EvalError, io_error};
 use crate::figures::{save_camera_paths, save_grid};
-use crate::inference::{pose_latents, render_targets, transfer};
+use crate::inference::{pose_latents, probe_features, render_targets, transfer};
 use crate::metrics::{CameraMetrics, psnr, ssim};
 use crate::oracle::{
     ClassicalOracle, ClassicalSettings, ExternalOracle, GroundTruthOracle, PoseOracle,
@@ -166,7 +166,7 @@ fn probe_sequences(
         .saturating_sub(context.spec.probe.test_scenes);
     let (mut train, mut test) = (Vec::new(), Vec::new());
     for sequence in &context.dataset.sequences {
-        let latents = pose_latents(
+        let latents = probe_features(
             model,
             &sequence.frames[0],
             &sequence.frames,
@@ -368,12 +368,17 @@ pub fn run_evaluation(
 fn camera_cells(metrics: &CameraMetrics) -> String {
     let at =
         |t: u32, f: fn(&crate::metrics::ThresholdScores) -> f64| metrics.at(t).map_or(f64::NAN, f);
+    let optional = |v: Option<f64>| v.map_or_else(|| "-".to_string(), |v| format!("{v:.3}"));
     format!(
-        "{:.3} | {:.3} | {:.3} | {:.3}",
+        "{:.3} | {:.3} | {:.3} | {:.3} | {:.3} | {:.3} | {} | {}",
         at(5, |s| s.rotation_accuracy),
         at(5, |s| s.translation_accuracy),
+        at(20, |s| s.rotation_auc),
+        at(20, |s| s.translation_auc),
         at(20, |s| s.auc),
-        at(30, |s| s.auc)
+        at(30, |s| s.auc),
+        optional(metrics.trajectory_error_scale_invariant),
+        optional(metrics.trajectory_error_unscaled),
     )
 }
 
@@ -403,7 +408,7 @@ pub fn markdown(report: &EvaluationReport) -> String {
             c.frames, c.psnr, c.ssim
         ));
     }
-    text.push_str("\n## Transferability (TPS) and pose probe\n\n| model | measure | Rac@5 | Tac@5 | AUC@20 | AUC@30 |\n| --- | --- | --- | --- | --- | --- |\n");
+    text.push_str("\n## Transferability (TPS) and pose probe\n\n| model | measure | Rac@5 | Tac@5 | Rot_Auc@20 | Trans_Auc@20 | SE3_Auc@20 | SE3_Auc@30 | traj err (scale-inv.) | traj err (unscaled) |\n| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |\n");
     for (name, r) in &rows {
         text.push_str(&format!(
             "| {name} | TPS | {} |\n",
@@ -416,7 +421,7 @@ pub fn markdown(report: &EvaluationReport) -> String {
     }
     let tps = &report.trained.tps;
     text.push_str(&format!(
-        "\n## Oracle calibration\n\n{} pairs x {} frames ({} skipped, {} unreadable renders).\n\n| transfer | Rac@5 | Tac@5 | AUC@20 | AUC@30 |\n| --- | --- | --- | --- | --- |\n| ideal (true rendering) | {} |\n| unrelated trajectory | {} |\n",
+        "\n## Oracle calibration\n\n{} pairs x {} frames ({} skipped, {} unreadable renders).\n\n| transfer | Rac@5 | Tac@5 | Rot_Auc@20 | Trans_Auc@20 | SE3_Auc@20 | SE3_Auc@30 | traj err (scale-inv.) | traj err (unscaled) |\n| --- | --- | --- | --- | --- | --- | --- | --- | --- |\n| ideal (true rendering) | {} |\n| unrelated trajectory | {} |\n",
         tps.pairs,
         tps.frames_per_pair,
         tps.skipped,

@@ -1,11 +1,12 @@
 //! Reading videos and scenes: one image file, a directory of frames, or an object-store prefix
-//! (`s3://`, `gs://`, `az://`, `file://`), frames in name order, centre-cropped and resized to
-//! the model's size.
+//! (`s3://`, `gs://`, `az://`, `file://`), frames ordered by the number in their names, centre-cropped
+//! and resized to the model's size as the release does.
 
 use std::path::Path;
 
 use data::Image;
 use data::decode::decode_frame;
+use data::frame_order::sort_frames;
 use data::store::DataRoot;
 
 use crate::error::{EvalError, io_error};
@@ -21,7 +22,7 @@ pub(crate) fn is_frame(name: &str) -> bool {
 
 /// The frames at `source` as `size x size` model images: a local image file gives one frame;
 /// a local directory or an object-store prefix gives its image files (not recursing into
-/// sub-folders) sorted by name.
+/// sub-folders) ordered by the number in their names (`frame9` before `frame10`).
 pub async fn load_frames_async(source: &str, size: usize) -> Result<Vec<Image>, EvalError> {
     let local = Path::new(source);
     if !source.contains("://") && local.is_file() {
@@ -29,13 +30,14 @@ pub async fn load_frames_async(source: &str, size: usize) -> Result<Vec<Image>, 
         return Ok(vec![decode_frame(&bytes, source, size)?]);
     }
     let root = DataRoot::open(source)?;
-    let names: Vec<String> = root
+    let mut names: Vec<String> = root
         .list()
         .await?
         .into_iter()
         .map(|listed| listed.path)
         .filter(|path| !path.contains('/') && is_frame(path))
         .collect();
+    sort_frames(&mut names);
     if names.is_empty() {
         return Err(EvalError::Invalid(format!(
             "{source}: no .jpg, .jpeg or .png frames"
@@ -63,12 +65,12 @@ mod tests {
     use super::*;
 
     #[test]
-    fn frames_are_read_in_name_order_and_resized() {
+    fn frames_are_read_in_numeric_name_order_and_resized() {
         let dir = std::env::temp_dir().join(format!("xfactor-frames-{}", std::process::id()));
         std::fs::create_dir_all(dir.join("nested")).unwrap();
         for (name, value) in [
-            ("b.png", 200u8),
-            ("a.png", 10),
+            ("frame10.png", 200u8),
+            ("frame9.png", 10),
             ("notes.txt", 0),
             ("nested/c.png", 0),
         ] {
@@ -85,7 +87,7 @@ mod tests {
         assert_eq!(frames.len(), 2);
         assert_eq!(frames[0].pixels.len(), 4 * 4 * 3);
         assert!(frames[0].pixels[0] < frames[1].pixels[0]);
-        let single = load_frames(dir.join("b.png").to_str().unwrap(), 4).unwrap();
+        let single = load_frames(dir.join("frame10.png").to_str().unwrap(), 4).unwrap();
         assert_eq!(single.len(), 1);
         assert!(load_frames(dir.join("nested/missing").to_str().unwrap(), 4).is_err());
         std::fs::remove_dir_all(&dir).unwrap();

@@ -34,20 +34,6 @@ pub fn rotation_angle_degrees(rotation: &Matrix3<f64>) -> f64 {
         .to_degrees()
 }
 
-/// The nearest rotation to `m` in the Frobenius norm (SVD projection with the determinant
-/// fixed to +1): turns a regressed 3x3 into a valid rotation, as the pose probe requires.
-pub fn project_to_rotation(m: &Matrix3<f64>) -> Matrix3<f64> {
-    let svd = m.svd(true, true);
-    let (Some(u), Some(v_t)) = (svd.u, svd.v_t) else {
-        return Matrix3::identity();
-    };
-    let mut fix = Matrix3::identity();
-    if (u * v_t).determinant() < 0.0 {
-        fix[(2, 2)] = -1.0;
-    }
-    u * fix * v_t
-}
-
 /// Every pose of `poses` expressed relative to `poses[reference]` (`T_i * inv(T_ref)`), so the
 /// reference becomes the identity: the relative poses the pose latents stand for.
 pub fn relative_to_reference(poses: &[CameraPose], reference: usize) -> Vec<CameraPose> {
@@ -60,17 +46,6 @@ pub fn relative_to_reference(poses: &[CameraPose], reference: usize) -> Vec<Came
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    #[test]
-    fn projection_recovers_a_rotation_from_a_noisy_one() {
-        let r = nalgebra::Rotation3::from_euler_angles(0.1, -0.3, 0.7).into_inner();
-        let noisy = r * 1.7 + Matrix3::from_element(0.01);
-        let projected = project_to_rotation(&noisy);
-        assert!((projected - r).norm() < 0.02);
-        assert!((projected.determinant() - 1.0).abs() < 1e-9);
-        let reflected = -r;
-        assert!((project_to_rotation(&reflected).determinant() - 1.0).abs() < 1e-9);
-    }
 
     #[test]
     fn angles_and_round_trips() {

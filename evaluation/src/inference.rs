@@ -78,6 +78,31 @@ pub fn pose_latents(
     Ok(latents)
 }
 
+/// PoseEnc's probe input `concat(z0, z)` (`2C` wide) for each pair `(reference, frame)`,
+/// unmasked: what the release's pose probe reads.
+pub fn probe_features(
+    model: &XFactor,
+    reference: &Image,
+    frames: &[Image],
+    device: &Device,
+) -> Result<Vec<Latent>, EvalError> {
+    let mut features = Vec::with_capacity(frames.len());
+    for chunk in frames.chunks(CHUNK) {
+        let references = upload(&vec![reference; chunk.len()], device)?;
+        let targets = upload(&chunk.iter().collect::<Vec<_>>(), device)?;
+        let pairs = Tensor::stack(vec![references, targets], 1);
+        let probe = model.pose_enc.probe_features(pairs);
+        let [b, _, width] = probe.dims();
+        let values = probe
+            .narrow(1, 1, 1)
+            .reshape([b * width])
+            .try_into_vec_as::<f32>()
+            .map_err(|e| EvalError::Tensor(format!("{e:?}")))?;
+        features.extend(values.chunks_exact(width).map(<[f32]>::to_vec));
+    }
+    Ok(features)
+}
+
 /// Renders one image per target latent from the context views, whose own latents are given
 /// (the first context is the reference, latent zero). One context view is the stereo
 /// (monocular-render) model; several are the multi-view model.
@@ -128,8 +153,26 @@ pub fn render_targets(
     Ok(renders)
 }
 
-/// Renders `scene`'s first frame (and its other frames as further context views) along the
-/// motion of `trajectory` relative to `trajectory[reference]`: the transfer XFactor exists for.
+/// The release's `proximity_permutation`: positions of `frame_indices` sorted (stably) by
+/// `max(|f - first|, |f - last|)`, where `first` and `last` are the first and last entries, so
+/// the middlest frame leads and the ends come last.
+pub fn proximity_permutation(frame_indices: &[i64]) -> Vec<usize> {
+    let (Some(&first), Some(&last)) = (frame_indices.first(), frame_indices.last()) else {
+        return Vec::new();
+    };
+    let mut order: Vec<usize> = (0..frame_indices.len()).collect();
+    order.sort_by_key(|&i| {
+        (frame_indices[i] - first)
+            .abs()
+            .max((frame_indices[i] - last).abs())
+    });
+    order
+}
+
+/// Renders `scene` along the motion of `trajectory` relative to `trajectory[reference]`: the
+/// transfer XFactor exists for. A one-frame scene is the stereo case; a multi-frame scene gives
+/// every frame as a context view, ordered middlest-first as the release's multi-view inference
+/// does (the middlest frame is the reference).
 pub fn transfer(
     model: &XFactor,
     trajectory: &[Image],
@@ -143,10 +186,34 @@ pub fn transfer(
             trajectory.len()
         ))
     })?;
+    let positions: Vec<i64> = (0..scene.len() as i64).collect();
+    let scene: Vec<Image> = proximity_permutation(&positions)
+        .into_iter()
+        .map(|i| scene[i].clone())
+        .collect();
     let scene_reference = scene
         .first()
         .ok_or_else(|| EvalError::Invalid("the scene has no frames".to_string()))?;
     let targets = pose_latents(model, anchor, trajectory, device)?;
-    let context_latents = pose_latents(model, scene_reference, scene, device)?;
-    render_targets(model, scene, &context_latents, &targets, device)
+    let context_latents = pose_latents(model, scene_reference, &scene, device)?;
+    render_targets(model, &scene, &context_latents, &targets, device)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn context_is_ordered_middlest_first() {
+        // Frames 0..5: distances to the ends are 4, 3, 2, 3, 4 -> 2, then 1 and 3, then the ends.
+        assert_eq!(proximity_permutation(&[0, 1, 2, 3, 4]), vec![2, 1, 3, 0, 4]);
+        // Six frames: 2 and 3 tie (distance 3) and keep their order.
+        assert_eq!(
+            proximity_permutation(&[0, 1, 2, 3, 4, 5]),
+            vec![2, 3, 1, 4, 0, 5]
+        );
+        // Uneven indices, reversed in time: first 30, last 0; 12 is 18 from 30, 20 is 20 from 0.
+        assert_eq!(proximity_permutation(&[30, 20, 12, 0]), vec![2, 1, 0, 3]);
+        assert!(proximity_permutation(&[]).is_empty());
+    }
 }

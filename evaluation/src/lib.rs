@@ -18,6 +18,7 @@ pub use transfer::{TransferOutput, TransferRequest, run_transfer, run_transfer_s
 pub use video::Sampling;
 pub mod evaluate;
 pub mod probe;
+pub mod so3;
 pub mod tps;
 
 pub use evaluate::{EvaluationReport, run_evaluation};

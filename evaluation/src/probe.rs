@@ -1,11 +1,12 @@
-//! The pose probe: with PoseEnc frozen, a 3-layer MLP learns to read relative SE(3) poses from
-//! its latents; its camera metrics on held-out scenes say how much camera geometry the latents
-//! carry, independently of the renderer.
-//!
-//! Training regresses the raw 3x3 rotation entries and the translation (mean squared error on
-//! standardised latents); evaluation projects the 3x3 output onto SO(3) with an SVD. Test
-//! sequences are those of held-out scenes (every trajectory appears in every scene), so a probe
-//! can only score there if the latents describe motion rather than appearance.
+//! The pose probe as the release defines it (`nn/models.py::pose_probe`, `nn/losses.py`): with
+//! PoseEnc frozen, `MLP3(features = 64) -> 12` reads a translation (3) and a 3x3 matrix from
+//! PoseEnc's probe input `concat(z0, z)` (the normalised global tokens before the pose head,
+//! not the pose latent); the matrix is projected onto SO(3) by SVD inside the forward pass
+//! ([`crate::so3`]), and the loss is `mean |R - R_gt| + mean |t - t_gt|` over frame pairs
+//! `(frame 0, frame i)`. Its camera metrics on held-out scenes say how much camera geometry
+//! PoseEnc carries, independently of the renderer. Test sequences are those of held-out scenes
+//! (every trajectory appears in every scene), so a probe can only score there if the features
+//! describe motion rather than appearance.
 
 use burn::module::Module;
 use burn::nn::{Linear, LinearConfig};
@@ -19,43 +20,75 @@ use serde::{Deserialize, Serialize};
 use settings::evaluation::ProbeSpec;
 
 use crate::error::EvalError;
-use crate::geometry::{pose, project_to_rotation, relative_to_reference};
+use crate::geometry::{pose, relative_to_reference};
 use crate::inference::Latent;
-use crate::metrics::{CameraMetrics, trajectory_errors};
+use crate::metrics::{CameraMetrics, trajectory_error, trajectory_errors};
+use crate::so3;
 
 /// Stream tag of the probe's batch draws.
 const PROBE_TAG: u64 = 0x5052_4f42;
-/// Outputs: 9 rotation entries and 3 translation components.
+/// Outputs: 3 translation components, then 9 matrix entries (row-major), as the release.
 const OUTPUTS: usize = 12;
 
-/// The MLP: `Cp -> width -> width -> 12`, GELU between.
+/// The release's MLP3: `Dense(4 features) -> GELU -> Dense(features) -> GELU -> Dense(12)`.
 #[derive(Module, Debug)]
 struct Probe {
-    input: Linear,
-    hidden: Linear,
-    output: Linear,
+    dense_0: Linear,
+    dense_1: Linear,
+    dense_2: Linear,
 }
 
 impl Probe {
-    fn new(inputs: usize, width: usize, device: &Device) -> Self {
+    fn new(inputs: usize, features: usize, device: &Device) -> Self {
         Self {
-            input: LinearConfig::new(inputs, width).init(device),
-            hidden: LinearConfig::new(width, width).init(device),
-            output: LinearConfig::new(width, OUTPUTS).init(device),
+            dense_0: LinearConfig::new(inputs, 4 * features).init(device),
+            dense_1: LinearConfig::new(4 * features, features).init(device),
+            dense_2: LinearConfig::new(features, OUTPUTS).init(device),
         }
     }
 
     fn forward(&self, x: Tensor<2>) -> Tensor<2> {
-        self.output
-            .forward(gelu(self.hidden.forward(gelu(self.input.forward(x)))))
+        self.dense_2
+            .forward(gelu(self.dense_1.forward(gelu(self.dense_0.forward(x)))))
     }
 }
 
-/// One sequence's frames for the probe: the latent of every frame relative to frame 0 and the
-/// world-to-camera poses.
+/// The translation and the (unprojected) matrix of one probe output.
+fn split_output(o: &[f32]) -> (Vector3<f64>, Matrix3<f64>) {
+    let o: Vec<f64> = o.iter().map(|&v| f64::from(v)).collect();
+    (
+        Vector3::new(o[0], o[1], o[2]),
+        Matrix3::new(o[3], o[4], o[5], o[6], o[7], o[8], o[9], o[10], o[11]),
+    )
+}
+
+/// The L1 loss of a batch of outputs against `(R, t)` targets, and its gradient with respect to
+/// the outputs (through the SVD projection).
+fn loss_and_gradient(outputs: &[f32], targets: &[[f32; OUTPUTS]]) -> (f64, Vec<f32>) {
+    let batch = targets.len().max(1) as f64;
+    let (rotation_weight, translation_weight) = (1.0 / (9.0 * batch), 1.0 / (3.0 * batch));
+    let mut loss = 0.0;
+    let mut gradient = Vec::with_capacity(outputs.len());
+    for (o, target) in outputs.chunks_exact(OUTPUTS).zip(targets) {
+        let (t, m) = split_output(o);
+        let (t_true, r_true) = split_output(target);
+        let r = so3::project(&m);
+        let dr = (r - r_true).map(f64::signum) * rotation_weight;
+        let dt = (t - t_true).map(f64::signum) * translation_weight;
+        loss += (r - r_true).abs().sum() * rotation_weight
+            + (t - t_true).abs().sum() * translation_weight;
+        let dm = so3::project_backward(&m, &dr);
+        gradient.extend(dt.iter().map(|&v| v as f32));
+        gradient.extend(dm.transpose().iter().map(|&v| v as f32));
+    }
+    (loss, gradient)
+}
+
+/// One sequence's frames for the probe: PoseEnc's probe input for every frame relative to
+/// frame 0, and the world-to-camera poses.
 #[derive(Debug, Clone)]
 pub struct ProbeSequence {
-    /// Latent of `(frame 0, frame i)` for every frame (frame 0's is zero).
+    /// `concat(z0, z)` of the pair `(frame 0, frame i)` for every frame.
     pub latents: Vec<Latent>,
     /// Ground-truth world-to-camera poses.
     pub poses: Vec<CameraPose>,
@@ -71,7 +104,7 @@ pub struct ProbeReport {
     pub train_samples: usize,
     /// Held-out sequences scored.
     pub test_sequences: usize,
-    /// Mean squared error of the last 10% of steps.
+    /// Mean L1 loss (rotation plus translation) of the last 10% of steps.
     pub final_loss: f64,
     /// Camera metrics over every frame pair of the held-out sequences.
     pub metrics: CameraMetrics,
@@ -81,30 +114,10 @@ fn target(relative: &CameraPose) -> [f32; OUTPUTS] {
     let r = relative.rotation;
     let t = relative.translation;
     [
-        r[0][0], r[0][1], r[0][2], r[1][0], r[1][1], r[1][2], r[2][0], r[2][1], r[2][2], t[0],
-        t[1], t[2],
+        t[0], t[1], t[2], r[0][0], r[0][1], r[0][2], r[1][0], r[1][1], r[1][2], r[2][0], r[2][1],
+        r[2][2],
     ]
     .map(|v| v as f32)
-}
-
-/// Per-dimension mean and standard deviation of the training latents.
-fn standardiser(samples: &[&Latent]) -> (Vec<f32>, Vec<f32>) {
-    let dims = samples.first().map_or(0, |s| s.len());
-    let n = samples.len().max(1) as f32;
-    let mean: Vec<f32> = (0..dims)
-        .map(|d| samples.iter().map(|s| s[d]).sum::<f32>() / n)
-        .collect();
-    let std = (0..dims)
-        .map(|d| {
-            let var = samples
-                .iter()
-                .map(|s| (s[d] - mean[d]).powi(2))
-                .sum::<f32>()
-                / n;
-            var.sqrt().max(1e-6)
-        })
-        .collect();
-    (mean, std)
 }
 
 /// Trains a probe on `train` and scores it on `test`, on `device` (which must support
@@ -135,16 +148,6 @@ pub fn run_probe(
             "probe batch and width must be positive".to_string(),
         ));
     }
-    let (mean, std) = standardiser(&inputs);
-    let normalise = |l: &Latent| -> Vec<f32> {
-        l.iter()
-            .zip(&mean)
-            .zip(&std)
-            .map(|((v, m), s)| (v - m) / s)
-            .collect()
-    };
-    let normalised: Vec<Vec<f32>> = inputs.iter().map(|l| normalise(l)).collect();
-
     // burn's initialisers draw from the device's generator: seed it so the probe, like every
     // other draw here, follows from the evaluation seed.
     device.seed(seed ^ PROBE_TAG);
@@ -154,18 +157,27 @@ pub fn run_probe(
     let mut losses = Vec::with_capacity(spec.steps);
     for _ in 0..spec.steps {
         let picks: Vec<usize> = (0..spec.batch)
-            .map(|_| stream.below(normalised.len() as u64) as usize)
+            .map(|_| stream.below(inputs.len() as u64) as usize)
             .collect();
         let x: Vec<f32> = picks
             .iter()
-            .flat_map(|&i| normalised[i].iter().copied())
+            .flat_map(|&i| inputs[i].iter().copied())
             .collect();
-        let y: Vec<f32> = picks.iter().flat_map(|&i| targets[i]).collect();
+        let batch_targets: Vec<[f32; OUTPUTS]> = picks.iter().map(|&i| targets[i]).collect();
         let x = Tensor::<2>::from_data(TensorData::new(x, [spec.batch, dims]), device);
-        let y = Tensor::<2>::from_data(TensorData::new(y, [spec.batch, OUTPUTS]), device);
-        let loss = (probe.forward(x) - y).square().mean();
-        let grads = GradientsParams::from_grads(loss.backward(), &probe);
-        losses.push(f64::from(loss.into_scalar::<f32>()));
+        let outputs = probe.forward(x);
+        let host = outputs
+            .clone()
+            .try_into_vec_as::<f32>()
+            .map_err(|e| EvalError::Tensor(format!("{e:?}")))?;
+        // The projection runs on the host; the surrogate `sum(outputs * dL/doutputs)` carries
+        // its exact gradient back into the MLP.
+        let (loss, gradient) = loss_and_gradient(&host, &batch_targets);
+        let gradient =
+            Tensor::<2>::from_data(TensorData::new(gradient, [spec.batch, OUTPUTS]), device);
+        let surrogate = (outputs * gradient).sum();
+        let grads = GradientsParams::from_grads(surrogate.backward(), &probe);
+        losses.push(loss);
         probe = optimiser.step(spec.learning_rate, probe, grads);
     }
     let tail = losses.len().div_ceil(10).max(1);
@@ -173,9 +185,10 @@ pub fn run_probe(
         losses.iter().rev().take(tail).sum::<f64>() / tail.min(losses.len()).max(1) as f64;
 
     let mut errors = Vec::new();
+    let mut trajectories = Vec::with_capacity(test.len());
     let mut paths = Vec::with_capacity(test.len());
     for sequence in test {
-        let x: Vec<f32> = sequence.latents.iter().flat_map(normalise).collect();
+        let x: Vec<f32> = sequence.latents.iter().flatten().copied().collect();
         let x = Tensor::<2>::from_data(TensorData::new(x, [sequence.latents.len(), dims]), device);
         let out = probe
             .forward(x)
@@ -188,13 +201,13 @@ pub fn run_probe(
                 if i == 0 {
                     return CameraPose::identity();
                 }
-                let o: Vec<f64> = o.iter().map(|&v| f64::from(v)).collect();
-                let r = Matrix3::new(o[0], o[1], o[2], o[3], o[4], o[5], o[6], o[7], o[8]);
-                pose(&project_to_rotation(&r), &Vector3::new(o[9], o[10], o[11]))
+                let (t, m) = split_output(o);
+                pose(&so3::project(&m), &t)
             })
             .collect();
         let reference = relative_to_reference(&sequence.poses, 0);
         errors.extend(trajectory_errors(&reference, &predicted));
+        trajectories.push(trajectory_error(&reference, &predicted));
         paths.push((reference, predicted));
     }
     Ok((
@@ -202,7 +215,7 @@ pub fn run_probe(
             train_samples: inputs.len(),
             test_sequences: test.len(),
             final_loss,
-            metrics: CameraMetrics::from_errors(&errors),
+            metrics: CameraMetrics::from_errors(&errors).with_trajectory_errors(&trajectories),
         },
         paths,
     ))

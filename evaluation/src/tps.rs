@@ -12,7 +12,9 @@ use data::synthetic::SyntheticDataset;
 use serde::{Deserialize, Serialize};
 
 use crate::error::EvalError;
-use crate::metrics::{CameraMetrics, PairError, trajectory_errors};
+use crate::metrics::{
+    CameraMetrics, PairError, TrajectoryError, trajectory_error, trajectory_errors,
+};
 use crate::oracle::PoseOracle;
 
 /// Stream tag of the pair draws.
@@ -149,7 +151,8 @@ pub fn transferability(
 ) -> Result<TpsReport, EvalError> {
     let frames = dataset.sequences.first().map_or(0, |s| s.frames.len());
     let indices = target_frames(frames, frames_per_pair);
-    let (mut model, mut ideal, mut unrelated) = (Vec::new(), Vec::new(), Vec::new());
+    let (mut model, mut ideal, mut unrelated) =
+        (Scored::default(), Scored::default(), Scored::default());
     let (mut skipped, mut failures) = (0, 0);
     let pair_count = indices.len() * indices.len().saturating_sub(1) / 2;
     for pair in pairs {
@@ -162,15 +165,16 @@ pub fn transferability(
                 continue;
             }
         };
-        let score = |images: &[Image], into: &mut Vec<PairError>| -> bool {
+        let score = |images: &[Image], into: &mut Scored| -> bool {
             match oracle.estimate(images) {
                 Ok(poses) => {
-                    into.extend(trajectory_errors(&reference, &poses));
+                    into.pairs.extend(trajectory_errors(&reference, &poses));
+                    into.trajectories.push(trajectory_error(&reference, &poses));
                     true
                 }
                 Err(error) => {
                     tracing::debug!(?pair, %error, "oracle cannot read a transfer");
-                    into.extend(std::iter::repeat_n(FAILED, pair_count));
+                    into.pairs.extend(std::iter::repeat_n(FAILED, pair_count));
                     false
                 }
             }
@@ -186,10 +190,24 @@ pub fn transferability(
         frames_per_pair: indices.len(),
         skipped,
         failures,
-        model: CameraMetrics::from_errors(&model),
-        ideal_transfer: CameraMetrics::from_errors(&ideal),
-        unrelated_trajectory: CameraMetrics::from_errors(&unrelated),
+        model: model.metrics(),
+        ideal_transfer: ideal.metrics(),
+        unrelated_trajectory: unrelated.metrics(),
     })
+}
+
+/// Pair errors of every scored transfer (failures as the worst error) and the trajectory errors
+/// of those the oracle could read.
+#[derive(Default)]
+struct Scored {
+    pairs: Vec<PairError>,
+    trajectories: Vec<TrajectoryError>,
+}
+
+impl Scored {
+    fn metrics(&self) -> CameraMetrics {
+        CameraMetrics::from_errors(&self.pairs).with_trajectory_errors(&self.trajectories)
+    }
 }
 
 #[cfg(test)]

@@ -203,6 +203,7 @@ fn objective_to_wire(objective: &StageObjective) -> v1::train_settings::Objectiv
                 &o.augment,
             ),
             views: o.views as u64,
+            render_from_stage1: o.render_from_stage1,
         }),
     }
 }
@@ -229,6 +230,7 @@ fn objective_from_wire(
             let (c, augment) = common(&o.common)?;
             StageObjective::Stage2(Stage2Config {
                 views: size(o.views),
+                render_from_stage1: o.render_from_stage1,
                 self_decode_probability: c.self_decode_probability,
                 unmasked_probability: c.unmasked_probability,
                 lpips_weight: c.lpips_weight,
@@ -503,6 +505,7 @@ mod tests {
             }),
             StageObjective::Stage2(Stage2Config {
                 views: 4,
+                render_from_stage1: true,
                 ..Stage2Config::default()
             }),
         ] {

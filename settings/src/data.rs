@@ -72,8 +72,8 @@ pub struct SamplerConfig {
     pub reverse_probability: f64,
     /// Favour long windows with `0.8 exp(-((u - 0.7) / 0.25)^2) + 0.2` (stage 2).
     pub long_baseline: bool,
-    /// Keep the reference (middlest) frame within `band * window / 2` of both ends (stage 2:
-    /// `1.25`).
+    /// Keep the reference (middlest) frame within `band * window / 2` of both ends. Off by
+    /// default: the release's `GAP_SIGMA = 1.25` never reaches its sampler.
     pub reference_band: Option<f64>,
     /// Per-dataset settings.
     pub datasets: Vec<DatasetSampling>,
@@ -113,14 +113,15 @@ impl SamplerConfig {
     }
 
     /// Stage 2: 6 frames; CO3Dv2 `9 -> 40` (2), DL3DV `6 -> 20` (5), RE10K `40 -> 200` (3),
-    /// MVImgNet `6 -> 20` (2); long baselines favoured; reference band 1.25.
+    /// MVImgNet `6 -> 20` (2); long baselines favoured; interior frames uniform (no reference
+    /// band, as the release samples).
     pub fn stage2() -> Self {
         Self {
             frames: 6,
             curriculum_steps: 50_000,
             reverse_probability: 0.5,
             long_baseline: true,
-            reference_band: Some(1.25),
+            reference_band: None,
             datasets: datasets([
                 (DatasetKind::Co3dv2, 2.0, 9, 40),
                 (DatasetKind::Dl3dv, 5.0, 6, 20),

@@ -95,7 +95,8 @@ pub struct ProbeSpec {
     pub steps: usize,
     /// Samples per step (the paper: 64).
     pub batch: usize,
-    /// Hidden width (the paper: 256).
+    /// `features` of the probe's MLP3 (hidden layers `4 * features` and `features`; the
+    /// release: 64).
     pub width: usize,
     /// AdamW learning rate.
     pub learning_rate: f64,
@@ -104,12 +105,13 @@ pub struct ProbeSpec {
 }
 
 impl Default for ProbeSpec {
-    /// 2000 steps of batch 64 at width 256, learning rate `1e-3`, two held-out scenes.
+    /// The paper's 10k steps of batch 64, the release's width 64, learning rate `1e-3`, two
+    /// held-out scenes.
     fn default() -> Self {
         Self {
-            steps: 2000,
+            steps: 10_000,
             batch: 64,
-            width: 256,
+            width: 64,
             learning_rate: 1e-3,
             test_scenes: 2,
         }

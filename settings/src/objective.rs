@@ -19,7 +19,7 @@ pub trait ObjectiveSettings: Default {
 pub struct AugmentConfig {
     /// Probability of colour jitter.
     pub jitter_probability: f64,
-    /// Brightness range half-width.
+    /// Half-width of the additive brightness shift.
     pub brightness: f64,
     /// Contrast range half-width.
     pub contrast: f64,
@@ -92,6 +92,9 @@ pub struct Stage2Config {
     pub lpips_weight: f64,
     /// Photometric augmentation of PoseEnc's input.
     pub augment: AugmentConfig,
+    /// Start Render from stage 1's weights too (the paper's text). Off by default: the release
+    /// loads only PoseEnc from stage 1 and initialises Render afresh.
+    pub render_from_stage1: bool,
 }
 
 impl Default for Stage2Config {
@@ -102,6 +105,7 @@ impl Default for Stage2Config {
             unmasked_probability: 0.05,
             lpips_weight: 0.5,
             augment: AugmentConfig::default(),
+            render_from_stage1: false,
         }
     }
 }

@@ -1,8 +1,12 @@
-//! Benchmark of the frame path (decode, centre-crop, resize, map to `[-1, 1]`) on JPEGs of
-//! generated scenes: 256x256 kept at 256, and 640x360 resized to 256.
+//! Benchmark of the frame path (decode, centre-crop, resize as the release does, map to
+//! `[-1, 1]`) on JPEGs of generated scenes (256x256 kept at 256, and 640x360 resized to 256),
+//! or with `--dir DIR` on the real frames of a directory, compared in the same run with the
+//! release's Python path (PIL + numpy, `benches/pil_decode.py`) on one core.
 //!
-//! `cargo bench -p trainer-core --bench decode -- [--frames N]`.
+//! `cargo bench -p trainer-core --bench decode -- [--frames N] [--dir DIR [--size 256]]`.
 
+use std::path::Path;
+use std::process::Command;
 use std::time::Instant;
 
 use data::decode::decode_frame;
@@ -40,8 +44,13 @@ fn jpeg_frames(width: u32, height: u32, count: usize) -> Vec<Vec<u8>> {
         .collect()
 }
 
-/// Frames per second decoding every frame `rounds` times on `threads` threads.
+/// Frames per second decoding every frame `rounds` times on `threads` threads at 256.
 fn frames_per_second(frames: &[Vec<u8>], rounds: usize, threads: usize) -> f64 {
+    frames_per_second_at(frames, rounds, threads, 256)
+}
+
+/// Frames per second decoding every frame `rounds` times on `threads` threads at `size`.
+fn frames_per_second_at(frames: &[Vec<u8>], rounds: usize, threads: usize, size: usize) -> f64 {
     let start = Instant::now();
     std::thread::scope(|scope| {
         for thread in 0..threads {
@@ -49,7 +58,8 @@ fn frames_per_second(frames: &[Vec<u8>], rounds: usize, threads: usize) -> f64 {
                 for round in 0..rounds {
                     for (i, bytes) in frames.iter().enumerate() {
                         if (round * frames.len() + i) % threads == thread {
-                            let frame = decode_frame(bytes, "bench.jpg", 256).expect("valid JPEG");
+                            let frame =
+                                decode_frame(bytes, "bench.jpg", size).expect("valid frame");
                             std::hint::black_box(frame);
                         }
                     }
@@ -60,8 +70,98 @@ fn frames_per_second(frames: &[Vec<u8>], rounds: usize, threads: usize) -> f64 {
     (frames.len() * rounds) as f64 / start.elapsed().as_secs_f64()
 }
 
+/// The value of `--name` in `args`.
+fn flag<'a>(args: &'a [String], name: &str) -> Option<&'a str> {
+    args.iter()
+        .position(|a| a == name)
+        .and_then(|i| args.get(i + 1))
+        .map(String::as_str)
+}
+
+/// Frames per second of the Python peer on `dir`, or why it could not run.
+fn pil_peer(dir: &str, size: usize, rounds: usize) -> Result<f64, String> {
+    let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("benches/pil_decode.py");
+    let output = Command::new("python3")
+        .arg(&script)
+        .arg(dir)
+        .args(["--size", &size.to_string(), "--rounds", &rounds.to_string()])
+        .output()
+        .map_err(|e| format!("cannot run python3: {e}"))?;
+    let stdout = String::from_utf8_lossy(&output.stdout);
+    if !output.status.success() {
+        return Err(format!(
+            "python3 {} failed (pillow and numpy installed?): {}",
+            script.display(),
+            String::from_utf8_lossy(&output.stderr).trim()
+        ));
+    }
+    stdout
+        .split_whitespace()
+        .find_map(|field| field.strip_prefix("fps="))
+        .and_then(|v| v.parse().ok())
+        .ok_or_else(|| format!("unexpected peer output `{}`", stdout.trim()))
+}
+
+/// Every frame file under `dir`, sub-folders included, each folder's in frame-number order.
+fn frame_files(dir: &Path) -> Vec<std::path::PathBuf> {
+    let mut entries: Vec<std::path::PathBuf> = std::fs::read_dir(dir)
+        .unwrap_or_else(|e| panic!("{}: {e}", dir.display()))
+        .filter_map(|entry| Some(entry.ok()?.path()))
+        .collect();
+    entries.sort_by(|a, b| {
+        data::frame_order::compare_frames(&a.to_string_lossy(), &b.to_string_lossy())
+    });
+    let mut files = Vec::new();
+    for path in entries {
+        if path.is_dir() {
+            files.extend(frame_files(&path));
+        } else if [".jpg", ".jpeg", ".png"]
+            .iter()
+            .any(|ext| path.to_string_lossy().to_ascii_lowercase().ends_with(ext))
+        {
+            files.push(path);
+        }
+    }
+    files
+}
+
+/// `--dir`: this crate's frame path on the frames under a directory against the Python peer.
+fn directory_benchmark(dir: &str, size: usize, cores: usize) {
+    let frames: Vec<Vec<u8>> = frame_files(Path::new(dir))
+        .iter()
+        .map(|path| std::fs::read(path).expect("readable frame"))
+        .collect();
+    assert!(!frames.is_empty(), "{dir}: no frames");
+    let rounds = 4;
+    let decode = |threads: usize| frames_per_second_at(&frames, rounds, threads, size);
+    decode(1);
+    let per_core = decode(1);
+    let total = decode(cores);
+    let peer = pil_peer(dir, size, rounds);
+    let (pil, ratio) = match &peer {
+        Ok(fps) => (format!("{fps:.0}"), format!("{:.2}", per_core / fps)),
+        Err(reason) => {
+            eprintln!("PIL peer unavailable: {reason}");
+            ("unavailable".to_string(), "unavailable".to_string())
+        }
+    };
+    println!(
+        "dir={dir} frames={} size={size} rounds={rounds} fps_per_core={per_core:.0} fps_total={total:.0} cores={cores} pil_fps_per_core={pil} ratio_per_core={ratio}",
+        frames.len()
+    );
+}
+
 fn main() {
     let args: Vec<String> = std::env::args().collect();
+    let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+    if let Some(dir) = flag(&args, "--dir") {
+        trainer_core::allocator::keep_freed_memory();
+        let size = flag(&args, "--size")
+            .and_then(|v| v.parse().ok())
+            .unwrap_or(256);
+        directory_benchmark(dir, size, cores);
+        return;
+    }
     let count = args
         .iter()
         .position(|a| a == "--frames")
@@ -69,7 +169,6 @@ fn main() {
         .and_then(|v| v.parse().ok())
         .unwrap_or(64);
     trainer_core::allocator::keep_freed_memory();
-    let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
     let small = jpeg_frames(256, 256, count);
     let large = jpeg_frames(640, 360, count);
     println!(

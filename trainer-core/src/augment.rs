@@ -1,5 +1,8 @@
-//! Photometric augmentation of PoseEnc's input: colour jitter and Gaussian blur with
-//! torchvision's semantics, applied with the same parameters to both frames of a pair.
+//! Photometric augmentation of PoseEnc's input: colour jitter and Gaussian blur as the authors'
+//! release computes them with dm_pix (additive brightness, per-channel-mean contrast, HSV
+//! saturation and hue, no clipping between the ops and one clip at the end; blur on the
+//! `[-1, 1]` image with zero padding). Each operation is a plain function of its parameters so
+//! `release-ops` fixtures can check it alone.
 
 use data::Image;
 use data::rng::Stream;
@@ -8,20 +11,20 @@ use settings::objective::AugmentConfig;
 /// The four jitter operations, applied in a random order.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum JitterOp {
-    /// Multiply intensities.
+    /// Add a constant to every channel.
     Brightness,
-    /// Blend with the mean grey level.
+    /// Scale the distance from each channel's spatial mean.
     Contrast,
-    /// Blend with the per-pixel grey level.
+    /// Scale the HSV saturation.
     Saturation,
-    /// Rotate the hue.
+    /// Shift the HSV hue.
     Hue,
 }
 
 /// Drawn colour-jitter parameters.
 #[derive(Debug, Clone, PartialEq)]
 pub struct ColorJitter {
-    /// Brightness factor in `[1 - b, 1 + b]`.
+    /// Added to every channel (in `[0, 1]` units), in `[-b, b]`.
     pub brightness: f32,
     /// Contrast factor in `[1 - c, 1 + c]`.
     pub contrast: f32,
@@ -54,7 +57,7 @@ pub trait AugmentDraw {
 impl AugmentDraw for AugmentConfig {
     fn draw(&self, stream: &mut Stream) -> Augmentation {
         let apply_jitter = stream.bernoulli(self.jitter_probability);
-        let brightness = stream.uniform_in(1.0 - self.brightness, 1.0 + self.brightness) as f32;
+        let brightness = stream.uniform_in(-self.brightness, self.brightness) as f32;
         let contrast = stream.uniform_in(1.0 - self.contrast, 1.0 + self.contrast) as f32;
         let saturation = stream.uniform_in(1.0 - self.saturation, 1.0 + self.saturation) as f32;
         let hue = stream.uniform_in(-self.hue, self.hue) as f32;
@@ -86,124 +89,166 @@ impl AugmentDraw for AugmentConfig {
 impl Augmentation {
     /// Applies jitter then blur to a copy of `image`.
     pub fn apply(&self, image: &Image) -> Image {
-        let mut unit: Vec<f32> = image.pixels.iter().map(|v| (v + 1.0) * 0.5).collect();
-        if let Some(jitter) = &self.jitter {
-            for op in jitter.order {
-                match op {
-                    JitterOp::Brightness => scale_intensity(&mut unit, jitter.brightness),
-                    JitterOp::Contrast => adjust_contrast(&mut unit, jitter.contrast),
-                    JitterOp::Saturation => adjust_saturation(&mut unit, jitter.saturation),
-                    JitterOp::Hue => rotate_hue(&mut unit, jitter.hue),
-                }
+        let jittered = match &self.jitter {
+            Some(jitter) => jitter.apply(image),
+            None => image.clone(),
+        };
+        match self.blur_sigma {
+            Some(sigma) => gaussian_blur(&jittered, self.blur_kernel, sigma),
+            None => jittered,
+        }
+    }
+}
+
+impl ColorJitter {
+    /// The four operations in `order` on the image mapped to `[0, 1]`, unclipped in between,
+    /// then `clip(2 * (y - 0.5), -1, 1)`.
+    pub fn apply(&self, image: &Image) -> Image {
+        let mut unit = to_unit(image);
+        for op in self.order {
+            match op {
+                JitterOp::Brightness => adjust_brightness(&mut unit, self.brightness),
+                JitterOp::Contrast => adjust_contrast(&mut unit, self.contrast),
+                JitterOp::Saturation => adjust_saturation(&mut unit, self.saturation),
+                JitterOp::Hue => adjust_hue(&mut unit, self.hue),
             }
         }
-        if let Some(sigma) = self.blur_sigma {
-            unit = gaussian_blur(&unit, image.height, image.width, self.blur_kernel, sigma);
-        }
-        Image {
-            height: image.height,
-            width: image.width,
-            pixels: unit.iter().map(|v| v * 2.0 - 1.0).collect(),
-        }
+        from_unit(image, &unit)
     }
 }
 
-fn grey(rgb: &[f32]) -> f32 {
-    0.299 * rgb[0] + 0.587 * rgb[1] + 0.114 * rgb[2]
+/// `(x + 1) / 2`: the `[0, 1]` values dm_pix works on.
+pub fn to_unit(image: &Image) -> Vec<f32> {
+    image.pixels.iter().map(|v| (v + 1.0) / 2.0).collect()
 }
 
-fn blend(value: f32, other: f32, factor: f32) -> f32 {
-    (factor * value + (1.0 - factor) * other).clamp(0.0, 1.0)
+/// `clip(2 * (y - 0.5), -1, 1)` with `image`'s shape: the one clip of the jitter.
+pub fn from_unit(image: &Image, unit: &[f32]) -> Image {
+    Image {
+        height: image.height,
+        width: image.width,
+        pixels: unit
+            .iter()
+            .map(|v| (2.0 * (v - 0.5)).clamp(-1.0, 1.0))
+            .collect(),
+    }
 }
 
-fn scale_intensity(unit: &mut [f32], factor: f32) {
-    unit.iter_mut().for_each(|v| *v = blend(*v, 0.0, factor));
+/// dm_pix `adjust_brightness`: adds `delta` to every value.
+pub fn adjust_brightness(unit: &mut [f32], delta: f32) {
+    unit.iter_mut().for_each(|v| *v += delta);
 }
 
-fn adjust_contrast(unit: &mut [f32], factor: f32) {
-    let pixels = unit.len() / 3;
-    let mean = unit.chunks_exact(3).map(grey).sum::<f32>() / pixels.max(1) as f32;
-    unit.iter_mut().for_each(|v| *v = blend(*v, mean, factor));
-}
-
-fn adjust_saturation(unit: &mut [f32], factor: f32) {
+/// dm_pix `adjust_contrast`: `factor * (x - mean) + mean` with the spatial mean of each channel.
+pub fn adjust_contrast(unit: &mut [f32], factor: f32) {
+    let pixels = (unit.len() / 3).max(1);
+    let mut sums = [0.0f64; 3];
+    for rgb in unit.chunks_exact(3) {
+        for (sum, v) in sums.iter_mut().zip(rgb) {
+            *sum += f64::from(*v);
+        }
+    }
+    let means = sums.map(|s| (s / pixels as f64) as f32);
     for rgb in unit.chunks_exact_mut(3) {
-        let g = grey(rgb);
-        rgb.iter_mut().for_each(|v| *v = blend(*v, g, factor));
+        for (v, mean) in rgb.iter_mut().zip(means) {
+            *v = factor * (*v - mean) + mean;
+        }
     }
 }
 
-fn rotate_hue(unit: &mut [f32], shift: f32) {
+/// dm_pix `adjust_saturation`: HSV saturation times `factor`, clipped to `[0, 1]`.
+pub fn adjust_saturation(unit: &mut [f32], factor: f32) {
     for rgb in unit.chunks_exact_mut(3) {
         let (h, s, v) = rgb_to_hsv(rgb[0], rgb[1], rgb[2]);
-        let (r, g, b) = hsv_to_rgb((h + shift).rem_euclid(1.0), s, v);
-        rgb.copy_from_slice(&[r, g, b]);
+        rgb.copy_from_slice(&hsv_to_rgb(h, (s * factor).clamp(0.0, 1.0), v));
     }
 }
 
+/// dm_pix `adjust_hue`: HSV hue plus `delta`, modulo one turn.
+pub fn adjust_hue(unit: &mut [f32], delta: f32) {
+    for rgb in unit.chunks_exact_mut(3) {
+        let (h, s, v) = rgb_to_hsv(rgb[0], rgb[1], rgb[2]);
+        rgb.copy_from_slice(&hsv_to_rgb(floor_mod_one(h + delta), s, v));
+    }
+}
+
+/// `x % 1.0` with the sign of the divisor, as numpy and jax compute it.
+fn floor_mod_one(x: f32) -> f32 {
+    let r = x % 1.0;
+    if r < 0.0 { r + 1.0 } else { r }
+}
+
+/// dm_pix's RGB to HSV, including its behaviour outside `[0, 1]` (values are not clipped
+/// between jitter ops, so inputs can leave the range).
 fn rgb_to_hsv(r: f32, g: f32, b: f32) -> (f32, f32, f32) {
-    let max = r.max(g).max(b);
-    let min = r.min(g).min(b);
-    let delta = max - min;
-    let s = if max > 0.0 { delta / max } else { 0.0 };
-    let h = if delta == 0.0 {
-        0.0
-    } else if max == r {
-        ((g - b) / delta).rem_euclid(6.0) / 6.0
-    } else if max == g {
-        ((b - r) / delta + 2.0) / 6.0
-    } else {
-        ((r - g) / delta + 4.0) / 6.0
-    };
-    (h, s, max)
-}
-
-fn hsv_to_rgb(h: f32, s: f32, v: f32) -> (f32, f32, f32) {
-    let sector = (h * 6.0).floor();
-    let f = h * 6.0 - sector;
-    let p = v * (1.0 - s);
-    let q = v * (1.0 - s * f);
-    let t = v * (1.0 - s * (1.0 - f));
-    match sector as i32 % 6 {
-        0 => (v, t, p),
-        1 => (q, v, p),
-        2 => (p, v, t),
-        3 => (p, q, v),
-        4 => (t, p, v),
-        _ => (v, p, q),
+    let value = r.max(g).max(b);
+    let minimum = r.min(g).min(b);
+    let range = value - minimum;
+    let saturation = if value > 0.0 { range / value } else { 0.0 };
+    if range <= 0.0 {
+        return (0.0, saturation, value);
     }
+    let norm = 1.0 / (6.0 * range);
+    let hue = if value == r {
+        norm * (g - b)
+    } else if value == g {
+        norm * (b - r) + 2.0 / 6.0
+    } else {
+        norm * (r - g) + 4.0 / 6.0
+    };
+    (if hue < 0.0 { hue + 1.0 } else { hue }, saturation, value)
 }
 
-/// Separable Gaussian blur with reflect padding (torchvision's `gaussian_blur`).
-fn gaussian_blur(unit: &[f32], height: usize, width: usize, kernel: usize, sigma: f32) -> Vec<f32> {
+/// dm_pix's HSV to RGB (piecewise-linear hue ramps).
+fn hsv_to_rgb(h: f32, s: f32, v: f32) -> [f32; 3] {
+    let dh = floor_mod_one(h) * 6.0;
+    let dr = ((dh - 3.0).abs() - 1.0).clamp(0.0, 1.0);
+    let dg = (2.0 - (dh - 2.0).abs()).clamp(0.0, 1.0);
+    let db = (2.0 - (dh - 4.0).abs()).clamp(0.0, 1.0);
+    let one_minus_s = 1.0 - s;
+    [
+        v * (one_minus_s + s * dr),
+        v * (one_minus_s + s * dg),
+        v * (one_minus_s + s * db),
+    ]
+}
+
+/// The release's normalised 1-D Gaussian: `exp(-x^2 / (2 sigma^2))` at `x = i - kernel / 2`.
+fn gaussian_kernel(kernel: usize, sigma: f32) -> Vec<f32> {
     let half = (kernel / 2) as isize;
-    let weights: Vec<f32> = (-half..=half)
-        .map(|x| (-(x * x) as f32 / (2.0 * sigma * sigma)).exp())
+    let weights: Vec<f32> = (0..kernel as isize)
+        .map(|i| {
+            let x = (i - half) as f32;
+            (-(x * x) / (2.0 * sigma * sigma)).exp()
+        })
         .collect();
     let total: f32 = weights.iter().sum();
-    let weights: Vec<f32> = weights.iter().map(|w| w / total).collect();
-    let reflect = |i: isize, n: usize| -> usize {
-        let n = n as isize;
-        let mut i = i;
-        while i < 0 || i >= n {
-            i = if i < 0 { -i } else { 2 * (n - 1) - i };
-        }
-        i as usize
-    };
-    let pass = |source: &[f32], horizontal: bool| -> Vec<f32> {
-        let mut out = vec![0.0; source.len()];
+    weights.iter().map(|w| w / total).collect()
+}
+
+/// The release's blur: a separable Gaussian (rows, then columns) on the `[-1, 1]` image with
+/// zero padding ('SAME'), then clipped to `[-1, 1]`.
+pub fn gaussian_blur(image: &Image, kernel: usize, sigma: f32) -> Image {
+    let (height, width) = (image.height, image.width);
+    let weights = gaussian_kernel(kernel, sigma);
+    let half = (kernel / 2) as isize;
+    let pass = |source: &[f32], vertical: bool| -> Vec<f32> {
+        let mut out = vec![0.0f32; source.len()];
         for row in 0..height {
             for col in 0..width {
                 for channel in 0..3 {
-                    let mut acc = 0.0;
+                    let mut acc = 0.0f32;
                     for (k, w) in weights.iter().enumerate() {
                         let offset = k as isize - half;
-                        let (r, c) = if horizontal {
-                            (row, reflect(col as isize + offset, width))
+                        let (r, c) = if vertical {
+                            (row as isize + offset, col as isize)
                         } else {
-                            (reflect(row as isize + offset, height), col)
+                            (row as isize, col as isize + offset)
                         };
-                        acc += w * source[(r * width + c) * 3 + channel];
+                        if r < 0 || c < 0 || r >= height as isize || c >= width as isize {
+                            continue;
+                        }
+                        acc += w * source[(r as usize * width + c as usize) * 3 + channel];
                     }
                     out[(row * width + col) * 3 + channel] = acc;
                 }
@@ -211,7 +256,12 @@ fn gaussian_blur(unit: &[f32], height: usize, width: usize, kernel: usize, sigma
         }
         out
     };
-    pass(&pass(unit, true), false)
+    let blurred = pass(&pass(&image.pixels, true), false);
+    Image {
+        height,
+        width,
+        pixels: blurred.into_iter().map(|v| v.clamp(-1.0, 1.0)).collect(),
+    }
 }
 
 #[cfg(test)]
@@ -239,7 +289,7 @@ mod tests {
             let a = config.draw(&mut Stream::new(&[1, sample]));
             if let Some(j) = &a.jitter {
                 jitters += 1;
-                assert!((0.8..=1.2).contains(&j.brightness));
+                assert!((-0.2..=0.2).contains(&j.brightness));
                 assert!((0.8..=1.2).contains(&j.contrast));
                 assert!((0.8..=1.2).contains(&j.saturation));
                 assert!((-0.05..=0.05).contains(&j.hue));
@@ -262,7 +312,7 @@ mod tests {
         let image = test_image();
         let identity = Augmentation {
             jitter: Some(ColorJitter {
-                brightness: 1.0,
+                brightness: 0.0,
                 contrast: 1.0,
                 saturation: 1.0,
                 hue: 0.0,
@@ -283,44 +333,44 @@ mod tests {
     }
 
     #[test]
-    fn blur_preserves_the_mean_of_a_constant_and_smooths_edges() {
+    fn blur_pads_with_zeros_and_keeps_a_constant_inside() {
         let mut image = test_image();
-        image.pixels.iter_mut().for_each(|v| *v = 0.25);
-        let blur = Augmentation {
-            jitter: None,
-            blur_sigma: Some(1.5),
-            blur_kernel: 7,
-        };
-        assert!(
-            blur.apply(&image)
-                .pixels
-                .iter()
-                .all(|v| (v - 0.25).abs() < 1e-5)
-        );
+        image.pixels.iter_mut().for_each(|v| *v = 0.5);
+        let blurred = gaussian_blur(&image, 7, 1.5);
+        let at = |row: usize, col: usize| blurred.pixels[(row * 8 + col) * 3];
+        // Three pixels from every border the 7-tap kernel sees only the constant.
+        assert!((at(3, 3) - 0.5).abs() < 1e-6 && (at(4, 4) - 0.5).abs() < 1e-6);
+        // At a corner the zero padding pulls towards 0.
+        assert!(at(0, 0) < 0.4, "{}", at(0, 0));
         let image = test_image();
         let spread = |p: &[f32]| {
             let mean = p.iter().sum::<f32>() / p.len() as f32;
             p.iter().map(|v| (v - mean).powi(2)).sum::<f32>()
         };
-        assert!(spread(&blur.apply(&image).pixels) < 0.5 * spread(&image.pixels));
+        assert!(spread(&gaussian_blur(&image, 7, 1.5).pixels) < 0.5 * spread(&image.pixels));
     }
 
     #[test]
-    fn hue_round_trip_and_brightness_scale() {
+    fn hsv_round_trip_and_additive_brightness() {
         for rgb in [
             [0.9f32, 0.2, 0.1],
             [0.1, 0.8, 0.3],
             [0.2, 0.3, 0.7],
             [0.5, 0.5, 0.5],
+            [0.3, 0.1, 0.2],
         ] {
             let (h, s, v) = rgb_to_hsv(rgb[0], rgb[1], rgb[2]);
-            let (r, g, b) = hsv_to_rgb(h, s, v);
-            assert!(
-                (r - rgb[0]).abs() < 1e-6 && (g - rgb[1]).abs() < 1e-6 && (b - rgb[2]).abs() < 1e-6
-            );
+            let back = hsv_to_rgb(h, s, v);
+            for (a, b) in back.iter().zip(rgb) {
+                assert!((a - b).abs() < 1e-6, "{rgb:?} -> {back:?}");
+            }
         }
         let mut unit = vec![0.5f32, 0.25, 1.0];
-        scale_intensity(&mut unit, 1.2);
-        assert_eq!(unit, vec![0.6, 0.3, 1.0]);
+        adjust_brightness(&mut unit, 0.125);
+        assert_eq!(unit, vec![0.625, 0.375, 1.125]);
+        // A non-positive value has no saturation: dm_pix turns such pixels grey.
+        let mut dark = vec![-0.1f32, -0.3, -0.2];
+        adjust_hue(&mut dark, 0.02);
+        assert_eq!(dark, vec![-0.1, -0.1, -0.1]);
     }
 }

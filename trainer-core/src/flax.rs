@@ -175,6 +175,15 @@ impl FlaxTensors {
     }
 }
 
+/// Tensors gathered elsewhere (an imported checkpoint, a test), keyed by full name.
+impl FromIterator<(String, HostTensor)> for FlaxTensors {
+    fn from_iter<I: IntoIterator<Item = (String, HostTensor)>>(iter: I) -> Self {
+        Self {
+            tensors: iter.into_iter().collect(),
+        }
+    }
+}
+
 fn decode(name: &str, dtype: Dtype, data: &[u8]) -> Result<Vec<f32>, FlaxError> {
     fn words<const N: usize>(data: &[u8]) -> impl Iterator<Item = [u8; N]> + '_ {
         data.chunks_exact(N)
@@ -313,6 +322,33 @@ impl ModuleMapper for Loader<'_> {
                 .set_require_grad(requires_grad)
         })
     }
+}
+
+/// Every parameter of `module`, keyed by flax name (without prefix): what an imported or
+/// trained model holds, in the layout the authors' files use.
+pub fn named_parameters<M: Module>(module: &M) -> BTreeMap<String, HostTensor> {
+    struct Collector {
+        path: Vec<String>,
+        found: BTreeMap<String, HostTensor>,
+    }
+    impl ModuleVisitor for Collector {
+        fn enter_module(&mut self, name: &str, _container_type: &str) {
+            self.path.push(name.to_string());
+        }
+        fn exit_module(&mut self, _name: &str, _container_type: &str) {
+            self.path.pop();
+        }
+        fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
+            self.found
+                .insert(flax_name(&self.path), HostTensor::from_tensor(param.val()));
+        }
+    }
+    let mut collector = Collector {
+        path: Vec::new(),
+        found: BTreeMap::new(),
+    };
+    module.visit(&mut collector);
+    collector.found
 }
 
 /// The gradient of every parameter of `module`, keyed by flax name (without prefix).

@@ -10,6 +10,7 @@ pub mod backend;
 pub mod checkpoint;
 pub mod flat;
 pub mod flax;
+pub mod import;
 pub mod lpips;
 pub mod model;
 pub mod objective;

@@ -112,7 +112,11 @@ impl Stage1Objective for Stage1Config {
         for (offset, (first, second)) in pairs.iter().enumerate() {
             let draw = self.draw(seed, step, first_sample + offset as u64);
             let target = if draw.self_decode { first } else { second };
-            builder.push(&[first, target], &draw.mask, &draw.augmentation);
+            builder.push(
+                &[first, target],
+                &draw.mask,
+                std::slice::from_ref(&draw.augmentation),
+            );
         }
         builder.finish(device)
     }
@@ -148,16 +152,18 @@ impl BatchBuilder {
         }
     }
 
-    /// Adds one sample: `frames` ordered reference first, target last.
-    fn push(&mut self, frames: &[&Image], mask: &QuadrantMask, augmentation: &Augmentation) {
+    /// Adds one sample: `frames` ordered reference first, target last; `augmentations[i]` is
+    /// applied to both frames of PoseEnc's pair `(reference, frames[i + 1])`.
+    fn push(&mut self, frames: &[&Image], mask: &QuadrantMask, augmentations: &[Augmentation]) {
         let reference = frames[0];
         self.shape = Some((reference.height, reference.width));
-        let augmented: Vec<Image> = frames.iter().map(|f| augmentation.apply(f)).collect();
         let grid = reference.height / self.patch_size.max(1);
         let patch_mask = mask.patch_mask(grid);
-        for view in &augmented[1..] {
-            self.encoder_pairs.extend_from_slice(&augmented[0].pixels);
-            self.encoder_pairs.extend_from_slice(&view.pixels);
+        for (view, augmentation) in frames[1..].iter().zip(augmentations) {
+            self.encoder_pairs
+                .extend_from_slice(&augmentation.apply(reference).pixels);
+            self.encoder_pairs
+                .extend_from_slice(&augmentation.apply(view).pixels);
             self.encoder_mask.extend_from_slice(&patch_mask);
         }
         for frame in &frames[..self.views - 1] {
@@ -277,8 +283,9 @@ pub struct Stage2Draw {
     pub self_decode_from: Option<usize>,
     /// Quadrants in segment 1.
     pub mask: QuadrantMask,
-    /// Photometric augmentation of every frame as PoseEnc sees them.
-    pub augmentation: Augmentation,
+    /// Photometric augmentation of each PoseEnc pair `(reference, frame i)`, `i = 1..V`: one
+    /// draw per pair, shared by its two frames, as the release draws them.
+    pub augmentations: Vec<Augmentation>,
 }
 
 /// The draws and batches of stage 2, computed from its settings.
@@ -316,14 +323,16 @@ impl Stage2Objective for Stage2Config {
         let replacement = stream.below(contexts) as usize;
         let unmasked = stream.bernoulli(self.unmasked_probability);
         let pair = QuadrantMask::PAIRS[stream.below(6) as usize];
-        let augmentation = self.augment.draw(&mut stream);
+        let augmentations = (1..order.len())
+            .map(|_| self.augment.draw(&mut stream))
+            .collect();
         Stage2Draw {
             order,
             self_decode_from: self_decode.then_some(replacement),
             mask: QuadrantMask {
                 marked: if unmasked { [false; 4] } else { pair },
             },
-            augmentation,
+            augmentations,
         }
     }
 
@@ -345,7 +354,7 @@ impl Stage2Objective for Stage2Config {
                 let last = ordered.len() - 1;
                 ordered[last] = ordered[source];
             }
-            builder.push(&ordered, &draw.mask, &draw.augmentation);
+            builder.push(&ordered, &draw.mask, &draw.augmentations);
         }
         builder.finish(device)
     }
@@ -450,6 +459,28 @@ mod tests {
             let share = *count as f64 / draws as f64;
             assert!((share - 0.2).abs() < 0.015, "position {position}: {share}");
         }
+    }
+
+    #[test]
+    fn stage2_draws_augmentation_per_pair() {
+        let config = Stage2Config::default();
+        let indices = [0u64, 3, 6, 9, 12, 15];
+        let draw = config.draw(1, 2, 3, &indices);
+        assert_eq!(
+            draw.augmentations.len(),
+            5,
+            "one draw per (reference, frame) pair"
+        );
+        assert_eq!(draw, config.draw(1, 2, 3, &indices));
+        // Two pairs of a sample are equal only when neither is jittered nor blurred
+        // (probability 0.07^2), so nearly every sample's first two pairs differ.
+        let differing = (0..200u64)
+            .filter(|&sample| {
+                let draw = config.draw(1, 2, sample, &indices);
+                draw.augmentations[0] != draw.augmentations[1]
+            })
+            .count();
+        assert!(differing >= 190, "{differing} of 200");
     }
 
     #[test]

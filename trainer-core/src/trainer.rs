@@ -87,11 +87,15 @@ pub struct StepMetrics {
     pub applied: bool,
 }
 
+/// `state.json` of a checkpoint directory; the importer of release checkpoints writes it too.
 #[derive(Debug, Serialize, Deserialize)]
-struct TrainerState {
-    step: u64,
-    updates: u64,
-    seed: u64,
+pub(crate) struct TrainerState {
+    /// The next step to run.
+    pub(crate) step: u64,
+    /// AdamW updates applied (bias-correction count).
+    pub(crate) updates: u64,
+    /// Seed of the run that wrote it.
+    pub(crate) seed: u64,
 }
 
 /// A model, its optimiser and the step counter.
@@ -336,14 +340,27 @@ impl Trainer {
     }
 
     /// Starts a new run (step 0, fresh optimiser) from the weights of a checkpoint directory:
-    /// how stage 2 begins from stage 1's final checkpoint.
+    /// how stage 2 begins from stage 1's final checkpoint. A stage-2 objective keeps only
+    /// PoseEnc and initialises Render afresh from the run's seed, as the release does, unless
+    /// its `render_from_stage1` is set.
     pub fn from_weights(
         config: TrainConfig,
         dir: &Path,
         lpips: Option<Lpips>,
         device: &Device,
     ) -> Result<Self, TrainError> {
-        let (model, model_config) = checkpoint::load(&dir.join("model.safetensors"), device)?;
+        let (mut model, model_config) = checkpoint::load(&dir.join("model.safetensors"), device)?;
+        if let StageObjective::Stage2(stage2) = &config.objective
+            && !stage2.render_from_stage1
+        {
+            let fresh = XFactor::new(&model_config, config.seed, device).map_err(|source| {
+                CheckpointError::Config {
+                    path: checkpoint::config_path(&dir.join("model.safetensors")),
+                    source,
+                }
+            })?;
+            model.render = fresh.render;
+        }
         Self::new(config, model_config, model, lpips, device)
     }
 
@@ -373,7 +390,8 @@ impl Trainer {
     }
 }
 
-fn write_host_tensors(
+/// Writes float32 tensors to a safetensors file through a temporary name.
+pub(crate) fn write_host_tensors(
     path: &Path,
     tensors: &[(String, crate::flax::HostTensor)],
 ) -> Result<(), String> {

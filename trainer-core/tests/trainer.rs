@@ -87,6 +87,10 @@ fn stage1() -> StageObjective {
 }
 
 fn parameters(model: &XFactor) -> Vec<Vec<f32>> {
+    parameters_of(model)
+}
+
+fn parameters_of<M: Module>(model: &M) -> Vec<Vec<f32>> {
     struct Collect(Vec<Vec<f32>>);
     impl ModuleVisitor for Collect {
         fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
@@ -202,7 +206,7 @@ fn a_positive_lpips_weight_without_weights_is_refused() {
 }
 
 #[test]
-fn run_checkpoints_every_n_steps_and_stage2_starts_from_stage1_weights() {
+fn run_checkpoints_every_n_steps_and_stage2_starts_from_stage1_pose_enc() {
     let device = Device::flex().autodiff();
     let dir = tempfile::tempdir().unwrap();
     let mut stage1_trainer = fresh_trainer(train_config(stage1(), 2, 2), &device);
@@ -230,6 +234,7 @@ fn run_checkpoints_every_n_steps_and_stage2_starts_from_stage1_weights() {
             .is_some_and(|s| s.contains("\"step\": 2"))
     );
 
+    // The release's start: PoseEnc from stage 1, Render freshly initialised from the seed.
     let stage2 = StageObjective::Stage2(Stage2Config {
         lpips_weight: 0.0,
         ..Stage2Config::default()
@@ -237,6 +242,28 @@ fn run_checkpoints_every_n_steps_and_stage2_starts_from_stage1_weights() {
     let stage2_trainer =
         Trainer::from_weights(train_config(stage2, 2, 2), dir.path(), None, &device).unwrap();
     assert_eq!(stage2_trainer.step(), 0);
+    let fresh = XFactor::new(&model_config(), train_config(stage1(), 2, 2).seed, &device).unwrap();
+    assert_eq!(
+        parameters_of(&stage2_trainer.model().pose_enc),
+        parameters_of(&stage1_trainer.model().pose_enc)
+    );
+    assert_eq!(
+        parameters_of(&stage2_trainer.model().render),
+        parameters_of(&fresh.render)
+    );
+    assert_ne!(
+        parameters_of(&stage2_trainer.model().render),
+        parameters_of(&stage1_trainer.model().render)
+    );
+
+    // The paper's text: both networks continue from stage 1.
+    let stage2 = StageObjective::Stage2(Stage2Config {
+        lpips_weight: 0.0,
+        render_from_stage1: true,
+        ..Stage2Config::default()
+    });
+    let stage2_trainer =
+        Trainer::from_weights(train_config(stage2, 2, 2), dir.path(), None, &device).unwrap();
     assert_eq!(
         parameters(stage2_trainer.model()),
         parameters(stage1_trainer.model())

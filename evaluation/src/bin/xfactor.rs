@@ -1,7 +1,8 @@
 //! `xfactor`: the user-facing tool of the evaluation crate.
 //!
 //! `xfactor transfer` renders a scene along the camera motion of another video;
-//! `xfactor evaluate` runs the paper's evaluation of a checkpoint on generated scenes.
+//! `xfactor evaluate` runs the paper's evaluation of a checkpoint on generated scenes;
+//! `xfactor import-checkpoint` turns the authors' released clu checkpoint into ours.
 
 use std::path::PathBuf;
 
@@ -34,6 +35,24 @@ enum Command {
     Transfer(TransferArgs),
     /// Runs the paper's evaluation of a checkpoint on generated scenes
     Evaluate(EvaluateArgs),
+    /// Imports the authors' released clu checkpoint (the `.flax` its `checkpoint` file names)
+    /// as a checkpoint of ours: weights, optimiser state and LPIPS weights
+    ImportCheckpoint(ImportArgs),
+}
+
+#[derive(Debug, clap::Args)]
+struct ImportArgs {
+    /// The clu checkpoint directory (holding `checkpoint` and `ckpt-N.flax`)
+    #[arg(value_name = "CLU_DIR")]
+    dir: PathBuf,
+    /// Folder our checkpoint is written to
+    #[arg(long, value_name = "DIR")]
+    out: PathBuf,
+    /// Training resolution of the imported model, in pixels
+    #[arg(long, value_name = "PIXELS", default_value_t = 256)]
+    image_size: usize,
+    #[command(flatten)]
+    log: LogArgs,
 }
 
 #[derive(Debug, clap::Args)]
@@ -107,6 +126,7 @@ fn main() -> anyhow::Result<()> {
     match Cli::parse().command {
         Command::Transfer(args) => transfer(args),
         Command::Evaluate(args) => evaluate(args),
+        Command::ImportCheckpoint(args) => import_checkpoint(args),
     }
 }
 
@@ -151,5 +171,29 @@ fn evaluate(args: EvaluateArgs) -> anyhow::Result<()> {
     let report = run_evaluation(&spec, &args.checkpoint, &args.out, &device)
         .with_context(|| format!("evaluating {}", args.checkpoint.display()))?;
     print!("{}", evaluation::evaluate::markdown(&report));
+    Ok(())
+}
+
+fn import_checkpoint(args: ImportArgs) -> anyhow::Result<()> {
+    args.log.init()?;
+    let imported = trainer_core::import::read_clu(&args.dir, args.image_size)
+        .with_context(|| format!("importing {}", args.dir.display()))?;
+    imported
+        .write(
+            &args.out,
+            &trainer_core::backend::BackendChoice::Cpu.device(),
+        )
+        .with_context(|| format!("writing {}", args.out.display()))?;
+    println!(
+        "imported={} out={} width={} layers={}+{} step={} updates={} lpips={}",
+        imported.source.display(),
+        args.out.display(),
+        imported.config.width,
+        imported.config.pose_layers,
+        imported.config.render_layers,
+        imported.step,
+        imported.updates,
+        !imported.lpips.is_empty()
+    );
     Ok(())
 }

@@ -1,17 +1,18 @@
 //! The camera metrics exactly as the spec defines them: for every pair `i < j` of frames the
 //! relative pose `T_i * inv(T_j)` of the reference and of the evaluated trajectory, the rotation
 //! error (angle of `R_ref^T R_eval`) and the sign-free translation-direction error, then
-//! `Rac_t` / `Tac_t` accuracies and AUC@t from a 1-degree histogram of the larger error.
+//! `Rac_t` / `Tac_t` accuracies and the release's AUC@t ([`super::auc`]) of the rotation, the
+//! translation and the larger of the two errors, plus the trajectory errors of camera centres.
 
 use data::scenes::CameraPose;
 use serde::{Deserialize, Serialize};
 
+use super::auc::{auc, normalized_histogram};
+use super::trajectory::TrajectoryError;
 use crate::geometry::{rotation, rotation_angle_degrees, translation};
 
 /// Thresholds (degrees) at which accuracies and AUCs are reported, as in the paper.
 pub const THRESHOLDS: [u32; 6] = [3, 5, 10, 15, 20, 30];
-/// Width of the AUC histogram, in 1-degree bins.
-const HISTOGRAM_BINS: usize = 30;
 /// Translations shorter than this have no direction; their error counts as the worst (90°).
 const MIN_DIRECTION: f64 = 1e-12;
 
@@ -68,8 +69,14 @@ pub struct ThresholdScores {
     pub rotation_accuracy: f64,
     /// `Tac_t`: share of pairs whose translation error is below the threshold.
     pub translation_accuracy: f64,
-    /// AUC@t of `max(rotation, translation)` error.
+    /// `SE3_Auc_t`: AUC@t of the `max(rotation, translation)` error.
     pub auc: f64,
+    /// `Rot_Auc_t`: AUC@t of the rotation error.
+    #[serde(default)]
+    pub rotation_auc: f64,
+    /// `Trans_Auc_t`: AUC@t of the translation error.
+    #[serde(default)]
+    pub translation_auc: f64,
 }
 
 /// The camera metrics of a set of pairs (possibly pooled over many sequences).
@@ -83,6 +90,13 @@ pub struct CameraMetrics {
     pub mean_translation_error: f64,
     /// Scores at each of [`THRESHOLDS`].
     pub thresholds: Vec<ThresholdScores>,
+    /// Mean scale-invariant trajectory error of camera centres (`traj_err_scale_invariant`),
+    /// when trajectories were given.
+    #[serde(default)]
+    pub trajectory_error_scale_invariant: Option<f64>,
+    /// Mean unscaled trajectory error of camera centres (`traj_err_unscaled`).
+    #[serde(default)]
+    pub trajectory_error_unscaled: Option<f64>,
 }
 
 impl CameraMetrics {
@@ -103,32 +117,23 @@ impl CameraMetrics {
                 errors.iter().map(value).sum::<f64>() / pairs as f64
             }
         };
-        let mut histogram = [0usize; HISTOGRAM_BINS];
-        for error in errors {
-            let worst = error.rotation.max(error.translation);
-            if (0.0..=HISTOGRAM_BINS as f64).contains(&worst) {
-                histogram[(worst as usize).min(HISTOGRAM_BINS - 1)] += 1;
-            }
-        }
-        let cumulative: Vec<f64> = histogram
-            .iter()
-            .scan(0.0, |sum, &count| {
-                *sum += share(count);
-                Some(*sum)
-            })
-            .collect();
+        let rotation = normalized_histogram(errors.iter().map(|e| e.rotation), pairs);
+        let translation = normalized_histogram(errors.iter().map(|e| e.translation), pairs);
+        let worst =
+            normalized_histogram(errors.iter().map(|e| e.rotation.max(e.translation)), pairs);
         let thresholds = THRESHOLDS
             .iter()
             .map(|&threshold| {
                 let t = f64::from(threshold);
-                let bins = (threshold as usize).min(HISTOGRAM_BINS);
                 ThresholdScores {
                     threshold,
                     rotation_accuracy: share(errors.iter().filter(|e| e.rotation < t).count()),
                     translation_accuracy: share(
                         errors.iter().filter(|e| e.translation < t).count(),
                     ),
-                    auc: cumulative[..bins].iter().sum::<f64>() / bins as f64,
+                    auc: auc(&worst, threshold),
+                    rotation_auc: auc(&rotation, threshold),
+                    translation_auc: auc(&translation, threshold),
                 }
             })
             .collect();
@@ -137,7 +142,42 @@ impl CameraMetrics {
             mean_rotation_error: mean(|e| e.rotation),
             mean_translation_error: mean(|e| e.translation),
             thresholds,
+            trajectory_error_scale_invariant: None,
+            trajectory_error_unscaled: None,
         }
+    }
+
+    /// Adds the means of per-trajectory errors (none given: none reported).
+    pub fn with_trajectory_errors(mut self, errors: &[TrajectoryError]) -> Self {
+        if !errors.is_empty() {
+            let n = errors.len() as f64;
+            self.trajectory_error_scale_invariant =
+                Some(errors.iter().map(|e| e.scale_invariant).sum::<f64>() / n);
+            self.trajectory_error_unscaled =
+                Some(errors.iter().map(|e| e.unscaled).sum::<f64>() / n);
+        }
+        self
+    }
+
+    /// Every figure under the release's name (`Rac_3`, `Rot_Auc_3`, `SE3_Auc_3`, ...,
+    /// `traj_err_scale_invariant`), so reports and fixtures compare key by key.
+    pub fn release_figures(&self) -> Vec<(String, f64)> {
+        let mut figures = Vec::new();
+        for s in &self.thresholds {
+            let t = s.threshold;
+            figures.push((format!("Rac_{t}"), s.rotation_accuracy));
+            figures.push((format!("Tac_{t}"), s.translation_accuracy));
+            figures.push((format!("Rot_Auc_{t}"), s.rotation_auc));
+            figures.push((format!("Trans_Auc_{t}"), s.translation_auc));
+            figures.push((format!("SE3_Auc_{t}"), s.auc));
+        }
+        if let Some(v) = self.trajectory_error_scale_invariant {
+            figures.push(("traj_err_scale_invariant".to_string(), v));
+        }
+        if let Some(v) = self.trajectory_error_unscaled {
+            figures.push(("traj_err_unscaled".to_string(), v));
+        }
+        figures
     }
 
     /// The scores at `threshold` degrees, if it is one of [`THRESHOLDS`].
@@ -238,13 +278,16 @@ mod tests {
         let at5 = metrics.at(5).unwrap();
         assert_eq!(at5.rotation_accuracy, 0.75);
         assert_eq!(metrics.at(15).unwrap().translation_accuracy, 0.75);
-        // max errors: 2.5 (bin 2), 4 (bin 4), 40 (outside), 1 (bin 1). Cumulative shares over
-        // bins 0..: 0, .25, .5, .5, .75, ...; AUC@3 = (0 + .25 + .5) / 3 = .25,
-        // AUC@5 = (0 + .25 + .5 + .5 + .75) / 5 = .4, AUC@30 = (0 + .25 + .5 + .5 + 26 * .75) / 30.
+        // max errors 2.5, 4, 40, 1 fall in bins 2, 4, none, 1 of width 30/31 degree
+        // (bin = floor(e * 31 / 30)). Cumulative shares over bins 0..: 0, .25, .5, .5, .75, ...;
+        // AUC@3 = (0 + .25 + .5) / 3 = .25, AUC@5 = (0 + .25 + .5 + .5 + .75) / 5 = .4,
+        // AUC@30 = (0 + .25 + .5 + .5 + 26 * .75) / 30.
         assert!((at3.auc - 0.25).abs() < 1e-12);
         assert!((at5.auc - 0.4).abs() < 1e-12);
         let auc30 = (0.25 + 0.5 + 0.5 + 26.0 * 0.75) / 30.0;
         assert!((metrics.at(30).unwrap().auc - auc30).abs() < 1e-12);
+        // Rotation alone: 0.5, 4, 12, 1 in bins 0, 4, 12, 1: cumulative .25, .5, .5, .5, .75.
+        assert!((at5.rotation_auc - (0.25 + 0.5 + 0.5 + 0.5 + 0.75) / 5.0).abs() < 1e-12);
         assert!((metrics.mean_rotation_error - 17.5 / 4.0).abs() < 1e-12);
         assert_eq!(CameraMetrics::from_errors(&[]).pairs, 0);
     }

@@ -63,7 +63,31 @@ impl PoseEnc {
         latents.narrow(2, 0, 1).reshape([b, v, cp])
     }
 
+    /// The release's probe input (`return_probe`): `concat(z0, z)` of the unmasked call, the
+    /// normalised global tokens before the pose head, `(B, V, 2C)`; `z0` is view 0's.
+    pub fn probe_features(&self, images: Tensor<5>) -> Tensor<3> {
+        let read_out = self.read_out(images, None);
+        let [b, v, _, c] = read_out.dims();
+        let z = read_out.narrow(2, 0, 1).reshape([b, v, c]);
+        let z0 = z.clone().narrow(1, 0, 1).expand([b, v, c]);
+        Tensor::cat(vec![z0, z], 2)
+    }
+
     fn encode(&self, images: Tensor<5>, mask: Option<Tensor<2>>) -> Tensor<4> {
+        let read_out = self.read_out(images, mask);
+        let [b, v, _, c] = read_out.dims();
+        let reference = read_out.clone().narrow(1, 0, 1).expand([b, v, 2, c]);
+        let relative = self
+            .pose_head
+            .forward(Tensor::cat(vec![read_out, reference.clone()], 3));
+        let baseline = self
+            .pose_head
+            .forward(Tensor::cat(vec![reference.clone(), reference], 3));
+        relative - baseline
+    }
+
+    /// `GELU(LayerNorm(.))` of the first token of each global copy: `(B, V, 2, C)`.
+    fn read_out(&self, images: Tensor<5>, mask: Option<Tensor<2>>) -> Tensor<4> {
         let [b, v, height, width, channels] = images.dims();
         let device = images.device();
         let grid = (height / self.patch_size, width / self.patch_size);
@@ -107,14 +131,6 @@ impl PoseEnc {
 
         let first_of_copy = |copy: usize| z.clone().narrow(2, patches + copy * globals, 1);
         let read_out = Tensor::cat(vec![first_of_copy(0), first_of_copy(1)], 2);
-        let read_out = gelu_tanh(self.out_norm.forward(read_out));
-        let reference = read_out.clone().narrow(1, 0, 1).expand([b, v, 2, c]);
-        let relative = self
-            .pose_head
-            .forward(Tensor::cat(vec![read_out, reference.clone()], 3));
-        let baseline = self
-            .pose_head
-            .forward(Tensor::cat(vec![reference.clone(), reference], 3));
-        relative - baseline
+        gelu_tanh(self.out_norm.forward(read_out))
     }
 }
