@@ -8,16 +8,14 @@
 //! (every trajectory appears in every scene), so a probe can only score there if the features
 //! describe motion rather than appearance.
 
-use burn::module::Module;
-use burn::nn::{Linear, LinearConfig};
 use burn::optim::{AdamWConfig, GradientsParams};
-use burn::tensor::activation::gelu;
 use burn::tensor::{Device, Tensor, TensorData};
 use data::rng::Stream;
 use data::scenes::CameraPose;
 use nalgebra::{Matrix3, Vector3};
 use serde::{Deserialize, Serialize};
 use settings::evaluation::ProbeSpec;
+use trainer_core::model::{Mlp3, ParamInit};
 
 use crate::error::EvalError;
 use crate::geometry::{pose, relative_to_reference};
@@ -29,29 +27,6 @@ use crate::so3;
 const PROBE_TAG: u64 = 0x5052_4f42;
 /// Outputs: 3 translation components, then 9 matrix entries (row-major), as the release.
 const OUTPUTS: usize = 12;
-
-/// The release's MLP3: `Dense(4 features) -> GELU -> Dense(features) -> GELU -> Dense(12)`.
-#[derive(Module, Debug)]
-struct Probe {
-    dense_0: Linear,
-    dense_1: Linear,
-    dense_2: Linear,
-}
-
-impl Probe {
-    fn new(inputs: usize, features: usize, device: &Device) -> Self {
-        Self {
-            dense_0: LinearConfig::new(inputs, 4 * features).init(device),
-            dense_1: LinearConfig::new(4 * features, features).init(device),
-            dense_2: LinearConfig::new(features, OUTPUTS).init(device),
-        }
-    }
-
-    fn forward(&self, x: Tensor<2>) -> Tensor<2> {
-        self.dense_2
-            .forward(gelu(self.dense_1.forward(gelu(self.dense_0.forward(x)))))
-    }
-}
 
 /// The translation and the (unprojected) matrix of one probe output.
 fn split_output(o: &[f32]) -> (Vector3<f64>, Matrix3<f64>) {
@@ -148,10 +123,10 @@ pub fn run_probe(
             "probe batch and width must be positive".to_string(),
         ));
     }
-    // burn's initialisers draw from the device's generator: seed it so the probe, like every
-    // other draw here, follows from the evaluation seed.
-    device.seed(seed ^ PROBE_TAG);
-    let mut probe = Probe::new(dims, spec.width, device);
+    // The release's MLP3 (tanh GELU; Xavier-uniform kernels, biases N(0, 1e-6), so the first
+    // outputs are small), drawn from the evaluation seed.
+    let mut init = ParamInit::new(seed ^ PROBE_TAG, device);
+    let mut probe = Mlp3::new(&mut init, dims, 4 * spec.width, spec.width, OUTPUTS);
     let mut optimiser = AdamWConfig::new().with_weight_decay(0.0).init();
     let mut stream = Stream::new(&[seed, PROBE_TAG]);
     let mut losses = Vec::with_capacity(spec.steps);
