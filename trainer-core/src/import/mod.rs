@@ -196,7 +196,11 @@ pub fn read_clu(dir: &Path, image_size: usize) -> Result<ImportedCheckpoint, Imp
         .tensors_under(PARAMS_PREFIX)
         .map(|(name, _)| name.to_string())
         .collect();
-    let (moments, updates, step) = optimizer_state(&state, &path, &param_names)?;
+    let OptimizerState {
+        moments,
+        updates,
+        step,
+    } = optimizer_state(&state, &path, &param_names)?;
     let lpips = lpips_weights(&state);
     Ok(ImportedCheckpoint {
         source: path,
@@ -293,8 +297,12 @@ fn infer_config(
     Ok(config)
 }
 
-/// Adam's moments by name, Adam's count, and the schedule's count.
-type OptimizerState = (Vec<(String, HostTensor)>, u64, u64);
+/// What the optax state maps to: our moments, Adam's count, the schedule's count.
+struct OptimizerState {
+    moments: Vec<(String, HostTensor)>,
+    updates: u64,
+    step: u64,
+}
 
 /// Adam's `mu`/`nu` for every parameter, its count, and the schedule's count. The release's
 /// state is `MultiSteps(chain(clip_by_global_norm, adamw))`: the Adam state sits at some
@@ -304,8 +312,13 @@ fn optimizer_state(
     path: &Path,
     param_names: &[String],
 ) -> Result<OptimizerState, ImportError> {
+    let none = OptimizerState {
+        moments: Vec::new(),
+        updates: 0,
+        step: 0,
+    };
     let Some(probe) = param_names.first() else {
-        return Ok((Vec::new(), 0, 0));
+        return Ok(none);
     };
     let suffix = format!(".mu.{probe}");
     let Some(adam) = state
@@ -316,7 +329,7 @@ fn optimizer_state(
         .map(|prefix| format!("{prefix}."))
     else {
         tracing::warn!(file = %path.display(), "no optimiser state: training restarts AdamW from zero moments");
-        return Ok((Vec::new(), 0, 0));
+        return Ok(none);
     };
     let count_of = |name: &str| -> Result<u64, ImportError> {
         let leaf = state.leaves.get(name).ok_or_else(|| ImportError::Missing {
@@ -381,7 +394,11 @@ fn optimizer_state(
             moments.push((format!("{ours}.{name}"), tensor.clone()));
         }
     }
-    Ok((moments, updates, step))
+    Ok(OptimizerState {
+        moments,
+        updates,
+        step,
+    })
 }
 
 /// The release's LPIPS parameters renamed to [`Lpips`]'s names: `vgg.convB_L.kernel` ->
