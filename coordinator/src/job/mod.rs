@@ -16,6 +16,7 @@ use settings::Phase;
 use crate::plan::Plan;
 
 mod assignments;
+mod faults;
 mod queries;
 mod records;
 #[cfg(test)]
@@ -363,50 +364,6 @@ impl JobState {
         true
     }
 
-    /// Adds a report's skipped frames to the job's count; past `max_skipped_frames` the job
-    /// stops, naming the datasets and examples.
-    fn count_skipped(&mut self, worker: u64, report: &StepReport) {
-        if report.skipped_frames == 0 {
-            return;
-        }
-        self.skipped
-            .insert((report.generation, worker), report.skipped_frames);
-        for example in &report.skipped_examples {
-            if !self.report.skipped_examples.contains(example) {
-                self.report.skipped_examples.push(example.clone());
-            }
-        }
-        let excess = self
-            .report
-            .skipped_examples
-            .len()
-            .saturating_sub(SKIPPED_EXAMPLES);
-        self.report.skipped_examples.drain(..excess);
-        self.report.skipped_frames = self.skipped.values().sum();
-        let limit = self.plan.config.max_skipped_frames;
-        if self.report.skipped_frames > limit && self.durable.failure.is_none() {
-            self.fail(format!(
-                "{} frames could not be read or decoded (max_skipped_frames: {limit}); examples: {}",
-                self.report.skipped_frames,
-                self.report.skipped_examples.join("; ")
-            ));
-        }
-    }
-
-    /// Stops the job: no group forms again, workers are told to finish, and the reason is kept
-    /// in `job.json` and the report.
-    pub fn fail(&mut self, reason: String) {
-        tracing::error!(%reason, "the job stops");
-        self.durable.failure = Some(reason);
-        self.durable.phase = Phase::Finished;
-        self.group = None;
-    }
-
-    /// Why the job stopped short, if it did.
-    pub fn failure(&self) -> Option<&str> {
-        self.durable.failure.as_deref()
-    }
-
     /// Accepts a verified checkpoint commit from the current group; returns whether its phase
     /// ended with it.
     pub fn commit(
@@ -507,85 +464,6 @@ impl JobState {
             changed |= self.try_form(now);
         }
         changed
-    }
-
-    /// Removes the members of the running group that have not moved on from computing a step
-    /// for `stall_timeout` while a peer waits for them in that step's all-reduce: a worker
-    /// stuck (in a data read, say) whose heartbeats still arrive. Each is blamed and sits out
-    /// a back-off. Returns whether any was removed.
-    fn remove_stalled(&mut self, now: Instant) -> bool {
-        let Some(group) = &self.group else {
-            return false;
-        };
-        let waited_on = |step: u64| {
-            group.members.iter().any(|m| {
-                self.members.get(m).is_some_and(|peer| {
-                    peer.activity == (Activity::Allreduce, step)
-                        && now.duration_since(peer.activity_since) > self.timing.stall_timeout
-                })
-            })
-        };
-        let stalled: Vec<u64> = group
-            .members
-            .iter()
-            .copied()
-            .filter(|m| {
-                self.members.get(m).is_some_and(|member| {
-                    let (activity, step) = member.activity;
-                    !member.lost
-                        && matches!(activity, Activity::Computing | Activity::Idle)
-                        && now.duration_since(member.activity_since) > self.timing.stall_timeout
-                        && waited_on(step)
-                })
-            })
-            .collect();
-        for worker in &stalled {
-            let (name, step) = match self.members.get(worker) {
-                Some(member) => (member.name.clone(), member.activity.1),
-                None => continue,
-            };
-            tracing::warn!(
-                worker,
-                %name,
-                step,
-                stall_timeout_s = self.timing.stall_timeout.as_secs_f64(),
-                "worker removed: no progress in its step while its peers waited in the all-reduce"
-            );
-            self.blame(*worker, now);
-        }
-        !stalled.is_empty()
-    }
-
-    /// Marks `worker` lost and excludes its address from groups for a back-off that doubles
-    /// with each failure it is blamed for.
-    fn blame(&mut self, worker: u64, now: Instant) {
-        let Some(member) = self.members.get_mut(&worker) else {
-            return;
-        };
-        member.lost = true;
-        let penalty = self.penalties.entry(member.address.clone()).or_default();
-        penalty.failures += 1;
-        let factor = 2u32.saturating_pow(penalty.failures - 1);
-        let backoff = self
-            .timing
-            .exclusion
-            .saturating_mul(factor)
-            .min(Duration::from_secs(3600));
-        penalty.excluded_until = Some(now + backoff);
-        self.report.exclusions.push(records::Exclusion {
-            worker: member.name.clone(),
-            address: member.address.clone(),
-            failures: penalty.failures,
-            seconds: backoff.as_secs_f64(),
-        });
-    }
-
-    /// Whether the worker at `address` sits out a back-off at `now`.
-    fn excluded(&self, address: &str, now: Instant) -> bool {
-        self.penalties
-            .get(address)
-            .and_then(|p| p.excluded_until)
-            .is_some_and(|until| now < until)
     }
 
     fn try_form(&mut self, now: Instant) -> bool {

@@ -1,0 +1,116 @@
+//! Every setting survives the wire; missing parts and unknown values are named.
+
+use super::*;
+
+#[test]
+fn every_setting_survives_the_wire() {
+    let model = XFactorConfig::benchmark();
+    assert_eq!(XFactorConfig::from(&v1::ModelConfig::from(&model)), model);
+    for objective in [
+        StageObjective::Stage1(Stage1Config {
+            lpips_weight: 0.25,
+            ..Stage1Config::default()
+        }),
+        StageObjective::Stage2(Stage2Config {
+            views: 4,
+            ..Stage2Config::default()
+        }),
+    ] {
+        let train = TrainConfig {
+            seed: 7,
+            objective,
+            global_batch: 8,
+            micro_batch: 2,
+            shards: 3,
+            schedule: Schedule::default(),
+            optimizer: AdamWConfig {
+                skip_norm_above: Some(5.0),
+                ..AdamWConfig::default()
+            },
+        };
+        let back = TrainConfig::try_from(&v1::TrainSettings::from(&train)).unwrap();
+        assert_eq!(back, train);
+    }
+    for source in [
+        DataSource::Generated {
+            scenes: 3,
+            trajectories: 4,
+            frames: 5,
+        },
+        DataSource::Stored(vec![StoredDataset {
+            kind: DatasetKind::Co3dv2,
+            uri: "s3://bucket/co3d".into(),
+            fingerprint: ListingFingerprint {
+                objects: 10,
+                bytes: 20,
+                newest: -3,
+                paths_crc: 99,
+            },
+        }]),
+    ] {
+        let spec = DataSpec {
+            source,
+            sampler: SamplerConfig::stage2(),
+            image_size: 64,
+            seed: 1,
+            global_batch: 16,
+        };
+        assert_eq!(
+            DataSpec::try_from(&v1::DataSettings::from(&spec)).unwrap(),
+            spec
+        );
+    }
+    let evaluation = EvaluationSpec {
+        oracle: OracleSpec::External {
+            program: "poses".into(),
+            args: vec!["--fast".into()],
+        },
+        lpips_weights: Some("lpips.safetensors".into()),
+        ..EvaluationSpec::default()
+    };
+    let back = EvaluationSpec::try_from(&v1::EvaluationSettings::from(&evaluation)).unwrap();
+    assert_eq!(back, evaluation);
+    for phase in [
+        Phase::Stage1,
+        Phase::Stage2,
+        Phase::Evaluate,
+        Phase::Finished,
+    ] {
+        assert_eq!(
+            phase_from_wire(phase_to_wire(phase) as i32, "phase"),
+            Ok(phase)
+        );
+    }
+    for device in DeviceChoice::ALL {
+        assert_eq!(
+            device_from_wire(device_to_wire(device) as i32, "device"),
+            Ok(device)
+        );
+    }
+}
+
+#[test]
+fn missing_parts_and_unknown_values_are_named() {
+    let mut train = v1::TrainSettings::from(&TrainConfig {
+        seed: 0,
+        objective: StageObjective::Stage1(Stage1Config::default()),
+        global_batch: 1,
+        micro_batch: 1,
+        shards: 0,
+        schedule: Schedule::default(),
+        optimizer: AdamWConfig::default(),
+    });
+    train.schedule = None;
+    assert_eq!(
+        TrainConfig::try_from(&train),
+        Err(ConvertError::Missing("train.schedule"))
+    );
+    assert_eq!(
+        phase_from_wire(0, "step.phase"),
+        Err(ConvertError::Unknown {
+            field: "step.phase",
+            value: 0
+        })
+    );
+    assert!(phase_from_wire(17, "x").is_err());
+}
