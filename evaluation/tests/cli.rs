@@ -17,6 +17,8 @@ fn help_lists_every_flag_with_its_default() {
             ("--scene", None),
             ("--out", None),
             ("--reference", Some("0")),
+            ("--frames", None),
+            ("--scene-frames", None),
             ("--backend", Some("cpu")),
             ("--log-format", Some("human")),
         ],
