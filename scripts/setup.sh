@@ -4,6 +4,8 @@
 #   machines without a GPU;
 # - ffmpeg (and ffprobe), which `xfactor transfer` uses to decode video files and to write the
 #   MP4, and which its test uses to make and measure videos;
+# - Pillow and NumPy for the system python3, which the decode benchmark's PIL peer
+#   (trainer-core/benches/pil_decode.py) runs on;
 # - moto's S3 server (PyPI `moto[server]`, pinned) in a virtual environment in the persistent
 #   cache, which the S3 integration tests start on loopback. Those tests fail, not skip, when
 #   it is missing, so this step fails loudly too.
@@ -18,6 +20,9 @@ if ! { ls /usr/share/vulkan/icd.d/lvp_icd*.json >/dev/null 2>&1 && ldconfig -p |
 fi
 if ! command -v ffmpeg >/dev/null || ! command -v ffprobe >/dev/null; then
     apt_packages+=(ffmpeg)
+fi
+if ! python3 -c "import PIL, numpy" 2>/dev/null; then
+    apt_packages+=(python3-pil python3-numpy)
 fi
 if [ "${#apt_packages[@]}" -gt 0 ]; then
     echo "setup: installing ${apt_packages[*]}" >&2

@@ -5,6 +5,7 @@ use std::fmt::Write as _;
 
 use data::cache::{CacheError, CacheUse, load_or_index};
 use data::spec::{rank_slice, shard_ids, steps_per_epoch};
+use data::split::{SplitError, read_split_file};
 use data::store::{DataRoot, StoreError};
 use data::{DatasetKind, Manifest, Split};
 use settings::Phase;
@@ -45,6 +46,19 @@ pub enum PlanError {
         /// What failed.
         #[source]
         source: CacheError,
+    },
+    /// A dataset's split file could not be read or parsed.
+    #[error("data.datasets[{index}].split_file ({kind} at {uri})")]
+    Split {
+        /// Position in the YAML list.
+        index: usize,
+        /// Its kind.
+        kind: &'static str,
+        /// Its root.
+        uri: String,
+        /// What failed (naming the file).
+        #[source]
+        source: SplitError,
     },
 }
 
@@ -147,12 +161,25 @@ impl Plan {
                         "indexed"
                     );
                     let mut train = cached.manifest.clone();
+                    let split_file = dataset.split_file.as_ref().map(|name| name.0.clone());
+                    if let Some(name) = &split_file {
+                        let split = read_split_file(&root, name).await.map_err(|source| {
+                            PlanError::Split {
+                                index,
+                                kind,
+                                uri: dataset.uri.0.clone(),
+                                source,
+                            }
+                        })?;
+                        split.apply(&mut train);
+                    }
                     train.sequences.retain(|s| s.split == Split::Train);
                     manifests.push((dataset.kind, root, train));
                     stored.push(StoredDataset {
                         kind: dataset.kind,
                         uri: dataset.uri.0.clone(),
                         fingerprint: cached.fingerprint,
+                        split_file,
                     });
                 }
                 DataSource::Stored(stored)

@@ -112,7 +112,7 @@ fn two_workers_of_four_equal_one_worker_of_eight() {
     for (a, b) in losses(&two).iter().zip(losses(&one)) {
         assert!((a - b).abs() <= 1e-5 * b.abs().max(1.0), "loss {a} vs {b}");
     }
-    let mut worst = 0.0f32;
+    let (mut worst, mut total, mut count) = (0.0f32, 0.0f64, 0usize);
     for name in one_weights.names_with_prefix("") {
         let (a, b) = (
             two_weights.get(name).unwrap(),
@@ -120,9 +120,19 @@ fn two_workers_of_four_equal_one_worker_of_eight() {
         );
         for (x, y) in a.values.iter().zip(&b.values) {
             worst = worst.max((x - y).abs());
+            total += f64::from((x - y).abs());
+            count += 1;
         }
     }
-    assert!(worst < 1e-5, "weights differ by up to {worst}");
+    // Adam's first steps move every weight by about the learning rate whatever its gradient's
+    // size, so a gradient that sums to nearly zero (where the two summation orders differ
+    // most) can move by a visibly different fraction of it. No weight may differ by half the
+    // smallest step (1e-4 here: a step the other way or a missing gradient does), and on
+    // average the runs agree to float32 rounding.
+    let mean = total / count.max(1) as f64;
+    println!("weights differ by up to {worst:e}, {mean:e} on average over {count}");
+    assert!(worst < 5e-5, "weights differ by up to {worst}");
+    assert!(mean < 1e-7, "weights differ by {mean} on average");
 }
 
 fn kill_one_mid_stage(workers: usize, minimum: usize) {

@@ -43,6 +43,45 @@ fn every_example_cluster_yaml_parses_and_validates() {
 }
 
 #[test]
+fn the_paper_example_trains_with_the_release_numbers() {
+    let config =
+        ClusterConfig::from_file(&repository().join("deploy/examples/paper.yaml")).unwrap();
+    assert_eq!(config.model_config().unwrap().image_size, 256);
+    let coordinator::config::DataConfig::Datasets(datasets) = &config.data else {
+        panic!("the paper trains on stored datasets");
+    };
+    assert_eq!(datasets.len(), 4);
+    for (steps, batch, schedule, lpips) in [
+        (
+            config.stage1.steps,
+            config.stage1.global_batch,
+            &config.stage1.schedule,
+            config.stage1.objective.lpips_weight,
+        ),
+        (
+            config.stage2.steps,
+            config.stage2.global_batch,
+            &config.stage2.schedule,
+            config.stage2.objective.lpips_weight,
+        ),
+    ] {
+        assert_eq!(batch, 256);
+        assert_eq!(lpips, 0.5);
+        assert_eq!(schedule.warmup_steps, 4000);
+        assert_eq!(schedule.total_steps, steps);
+        assert_eq!(
+            (schedule.initial_lr, schedule.peak_lr, schedule.final_lr),
+            (1e-12, 4e-4, 1e-4)
+        );
+    }
+    assert_eq!(
+        (config.stage1.steps, config.stage2.steps),
+        (100_000, 200_000)
+    );
+    assert!(!config.stage2.objective.render_from_stage1);
+}
+
+#[test]
 fn the_kubernetes_config_map_is_the_kubernetes_example() {
     assert_eq!(
         read("deploy/k8s/cluster.yaml"),

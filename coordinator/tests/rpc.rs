@@ -1,5 +1,5 @@
 //! The coordinator's refusals, through a real gRPC connection: wrong or missing token, another
-//! protocol version, another model config.
+//! protocol version, another model config, and requests forged in another worker's name.
 
 use std::time::Duration;
 
@@ -8,7 +8,7 @@ use coordinator::local::free_port;
 use coordinator::plan::Plan;
 use coordinator::service::CoordinatorService;
 use proto::v1::coordinator_client::CoordinatorClient;
-use proto::v1::{RegisterRequest, StatusRequest};
+use proto::v1::{CheckpointCommit, LeaveRequest, RegisterRequest, StatusRequest};
 use tokio::sync::oneshot;
 
 fn yaml(port: u16, checkpoints: &str) -> String {
@@ -120,11 +120,56 @@ async fn refusals_name_their_reason() {
     let accepted = client
         .register(request(proto::PROTOCOL_VERSION, Some(&model)))
         .await
-        .unwrap();
-    assert!(accepted.into_inner().worker_id > 0);
+        .unwrap()
+        .into_inner();
+    assert!(accepted.worker_id > 0);
+    assert_eq!(accepted.session.len(), 32, "128 random bits as hex");
     let status = client.status(StatusRequest {}).await.unwrap().into_inner();
     assert_eq!(status.job_name, "rpc-test");
     assert_eq!(status.workers, 1);
+
+    // A second registration holds the job token but not the first worker's session: it can
+    // neither make the first leave nor commit in its name.
+    let intruder = client
+        .register(request(proto::PROTOCOL_VERSION, None))
+        .await
+        .unwrap()
+        .into_inner();
+    let forged_leave = client
+        .leave(LeaveRequest {
+            worker_id: accepted.worker_id,
+            reason: "forged".into(),
+            session: intruder.session.clone(),
+        })
+        .await
+        .unwrap_err();
+    assert_eq!(forged_leave.code(), tonic::Code::PermissionDenied);
+    assert!(
+        forged_leave.message().contains("session secret"),
+        "{forged_leave:?}"
+    );
+    let forged_commit = client
+        .commit_checkpoint(CheckpointCommit {
+            worker_id: accepted.worker_id,
+            generation: 1,
+            phase: proto::v1::Phase::Stage1 as i32,
+            step: 1,
+            location: "/etc".into(),
+            session: String::new(),
+        })
+        .await
+        .unwrap_err();
+    assert_eq!(forged_commit.code(), tonic::Code::PermissionDenied);
+    let status = client.status(StatusRequest {}).await.unwrap().into_inner();
+    assert_eq!(status.workers, 2, "no forged request removed a worker");
+    client
+        .leave(LeaveRequest {
+            worker_id: intruder.worker_id,
+            reason: "done".into(),
+            session: intruder.session,
+        })
+        .await
+        .unwrap();
 
     stop.send(()).unwrap();
     server.await.unwrap().unwrap();

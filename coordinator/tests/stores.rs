@@ -10,7 +10,7 @@ mod common;
 use std::path::Path;
 use std::time::{Duration, Instant};
 
-use common::{Moto, Running, small_job, wait_exit};
+use common::{Moto, Running, commits, small_job, wait_exit};
 use coordinator::job::Durable;
 use coordinator::service::store::{DurableWriteError, read_durable, write_durable};
 use data::DatasetKind;
@@ -122,21 +122,6 @@ fn job_on(store: &Store, dir: &Path) -> coordinator::local::LocalJob {
     job
 }
 
-fn commits(report: &Value, stage: u64) -> Vec<(u64, String)> {
-    report["commits"]
-        .as_array()
-        .unwrap()
-        .iter()
-        .filter(|c| c["stage"] == stage)
-        .map(|c| {
-            (
-                c["step"].as_u64().unwrap(),
-                c["location"].as_str().unwrap().to_string(),
-            )
-        })
-        .collect()
-}
-
 /// Downloads the checkpoint at `location` and loads its weights.
 fn load_weights(store: &Store, location: &str, scratch: &Path) {
     let rt = runtime();
@@ -187,6 +172,24 @@ fn trains_both_stages(store: &Store, dir: &Path) {
             .block_on(checkpoints.read(&format!("curves/stage{stage}.csv")))
             .unwrap();
         assert_eq!(String::from_utf8(csv).unwrap().lines().count(), steps + 1);
+    }
+    // The step history went to the store as the job ran, one JSON line per step.
+    let history = rt
+        .block_on(checkpoints.read(&coordinator::service::history::segment_path(0)))
+        .unwrap();
+    let lines: Vec<Value> = String::from_utf8(history)
+        .unwrap()
+        .lines()
+        .map(|line| serde_json::from_str(line).unwrap())
+        .collect();
+    let steps = report["steps"].as_array().unwrap();
+    assert_eq!(lines.len(), steps.len());
+    for (line, step) in lines.iter().zip(steps) {
+        assert_eq!(
+            (&line["stage"], &line["step"]),
+            (&step["stage"], &step["step"])
+        );
+        assert_eq!(line["loss"], step["loss"]);
     }
     let cache = data::cache::cache_path(DatasetKind::Re10k);
     rt.block_on(store.root("data").read(&cache))

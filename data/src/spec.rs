@@ -16,6 +16,7 @@ use crate::manifest::{Manifest, Split};
 use crate::scenes::SceneConfig;
 use crate::shard::shard_sequences;
 use crate::source::{DatasetSource, IndexedDataset};
+use crate::split::{SplitError, read_split_file};
 use crate::store::{DataRoot, StoreError};
 use crate::synthetic::SyntheticDataset;
 
@@ -28,6 +29,9 @@ pub enum SpecError {
     /// A manifest cache was missing, corrupt or stale.
     #[error(transparent)]
     Cache(#[from] CacheError),
+    /// A dataset's split file could not be read or parsed.
+    #[error(transparent)]
+    Split(#[from] SplitError),
     /// No training sequences.
     #[error("the job's datasets hold no training sequences")]
     NoTrainingSequences,
@@ -41,6 +45,9 @@ pub async fn training_manifests(
     for dataset in datasets {
         let root = DataRoot::open(&dataset.uri)?;
         let mut manifest = read_cached(&root, dataset.kind, dataset.fingerprint).await?;
+        if let Some(name) = &dataset.split_file {
+            read_split_file(&root, name).await?.apply(&mut manifest);
+        }
         manifest.sequences.retain(|s| s.split == Split::Train);
         manifests.push((dataset.kind, root, manifest));
     }

@@ -6,6 +6,7 @@
 use std::collections::BTreeSet;
 
 use crate::manifest::{Manifest, Split};
+use crate::store::{DataRoot, StoreError};
 
 /// Why a split file cannot be used.
 #[derive(Debug, thiserror::Error)]
@@ -25,6 +26,40 @@ pub enum SplitError {
         /// The file.
         name: String,
     },
+    /// The file could not be opened or read.
+    #[error("split file {name} could not be read")]
+    Read {
+        /// The file as the job names it.
+        name: String,
+        /// The store's error.
+        #[source]
+        source: StoreError,
+    },
+}
+
+/// Reads the split file a dataset names: a path relative to the dataset's root, or a whole
+/// path or URI of its own (`/splits/re10k.json`, `s3://bucket/splits/re10k.json`).
+pub async fn read_split_file(dataset_root: &DataRoot, name: &str) -> Result<SplitFile, SplitError> {
+    let read_error = |source| SplitError::Read {
+        name: name.to_string(),
+        source,
+    };
+    let bytes = if name.contains("://") || name.starts_with('/') {
+        let (parent, file) = name.rsplit_once('/').unwrap_or(("", name));
+        let parent = if parent.is_empty() || parent.ends_with(':') {
+            format!("{parent}/")
+        } else {
+            parent.to_string()
+        };
+        DataRoot::open(&parent)
+            .map_err(read_error)?
+            .read(file)
+            .await
+            .map_err(read_error)?
+    } else {
+        dataset_root.read(name).await.map_err(read_error)?
+    };
+    SplitFile::parse(&bytes, name)
 }
 
 /// The sequence ids a split file lists.
@@ -97,6 +132,32 @@ mod tests {
             .map(|s| s.id.as_str())
             .collect();
         assert_eq!(train, vec!["apple/000_1_2", "apple/900_1_2"]);
+    }
+
+    #[test]
+    fn split_files_are_read_beside_the_data_or_from_their_own_path() {
+        let dir = tempfile::tempdir().unwrap();
+        std::fs::create_dir(dir.path().join("splits")).unwrap();
+        std::fs::write(dir.path().join("splits/train.json"), br#"{"seq-a": 1}"#).unwrap();
+        let root = DataRoot::open(&dir.path().to_string_lossy()).unwrap();
+        let rt = tokio::runtime::Runtime::new().unwrap();
+        let relative = rt
+            .block_on(read_split_file(&root, "splits/train.json"))
+            .unwrap();
+        assert!(relative.lists("seq-a") && !relative.lists("seq-b"));
+        let absolute = dir.path().join("splits/train.json");
+        let absolute = rt
+            .block_on(read_split_file(&root, &absolute.to_string_lossy()))
+            .unwrap();
+        assert_eq!(absolute, relative);
+        let missing = rt
+            .block_on(read_split_file(&root, "splits/test.json"))
+            .unwrap_err();
+        assert!(matches!(missing, SplitError::Read { .. }), "{missing}");
+        assert!(
+            missing.to_string().contains("splits/test.json"),
+            "{missing}"
+        );
     }
 
     #[test]

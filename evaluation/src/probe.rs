@@ -14,7 +14,7 @@ use data::rng::Stream;
 use data::scenes::CameraPose;
 use nalgebra::{Matrix3, Vector3};
 use serde::{Deserialize, Serialize};
-use settings::evaluation::ProbeSpec;
+use settings::evaluation::{ProbeLoss, ProbeSpec};
 use trainer_core::model::{Mlp3, ParamInit};
 
 use crate::error::EvalError;
@@ -28,8 +28,11 @@ const PROBE_TAG: u64 = 0x5052_4f42;
 /// Outputs: 3 translation components, then 9 matrix entries (row-major), as the release.
 const OUTPUTS: usize = 12;
 
+/// A translation and a 3x3 matrix: one probe output or target.
+type Output = (Vector3<f64>, Matrix3<f64>);
+
 /// The translation and the (unprojected) matrix of one probe output.
-fn split_output(o: &[f32]) -> (Vector3<f64>, Matrix3<f64>) {
+fn split_output(o: &[f32]) -> Output {
     let o: Vec<f64> = o.iter().map(|&v| f64::from(v)).collect();
     (
         Vector3::new(o[0], o[1], o[2]),
@@ -38,23 +41,72 @@ fn split_output(o: &[f32]) -> (Vector3<f64>, Matrix3<f64>) {
 }
 
 /// The L1 loss of a batch of outputs against `(R, t)` targets, and its gradient with respect to
-/// the outputs (through the SVD projection).
-fn loss_and_gradient(outputs: &[f32], targets: &[[f32; OUTPUTS]]) -> (f64, Vec<f32>) {
-    let batch = targets.len().max(1) as f64;
-    let (rotation_weight, translation_weight) = (1.0 / (9.0 * batch), 1.0 / (3.0 * batch));
+/// the outputs (through the SVD projection): `mean |R - R_gt| + mean |t - t_gt|` over every
+/// pair. The pairs come in consecutive groups of `groups[k]` (one sequence's pairs each); with
+/// `scale_aligned`, each group's predicted translations are first multiplied by
+/// `s = <t_gt, t> / max(<t, t>, 1e-8)` over the group, as the release's `scale_procrustes`,
+/// and the gradient flows through `s` too.
+fn loss_and_gradient(
+    outputs: &[f32],
+    targets: &[[f32; OUTPUTS]],
+    groups: &[usize],
+    scale_aligned: bool,
+) -> (f64, Vec<f32>) {
+    let pairs = targets.len().max(1) as f64;
+    let (rotation_weight, translation_weight) = (1.0 / (9.0 * pairs), 1.0 / (3.0 * pairs));
     let mut loss = 0.0;
-    let mut gradient = Vec::with_capacity(outputs.len());
-    for (o, target) in outputs.chunks_exact(OUTPUTS).zip(targets) {
-        let (t, m) = split_output(o);
-        let (t_true, r_true) = split_output(target);
-        let r = so3::project(&m);
-        let dr = (r - r_true).map(f64::signum) * rotation_weight;
-        let dt = (t - t_true).map(f64::signum) * translation_weight;
-        loss += (r - r_true).abs().sum() * rotation_weight
-            + (t - t_true).abs().sum() * translation_weight;
-        let dm = so3::project_backward(&m, &dr);
-        gradient.extend(dt.iter().map(|&v| v as f32));
-        gradient.extend(dm.transpose().iter().map(|&v| v as f32));
+    let mut gradient = vec![0.0f32; outputs.len()];
+    let mut first = 0;
+    for &size in groups {
+        let range = first..first + size;
+        first += size;
+        let parts: Vec<(Output, Output)> = range
+            .clone()
+            .map(|i| {
+                (
+                    split_output(&outputs[i * OUTPUTS..(i + 1) * OUTPUTS]),
+                    split_output(&targets[i]),
+                )
+            })
+            .collect();
+        let (dot, norm) = parts
+            .iter()
+            .fold((0.0, 0.0), |(d, n), ((t, _), (t_true, _))| {
+                (d + t_true.dot(t), n + t.dot(t))
+            });
+        let scale = match scale_aligned {
+            true => dot / norm.max(1e-8),
+            false => 1.0,
+        };
+        let signs: Vec<Vector3<f64>> = parts
+            .iter()
+            .map(|((t, _), (t_true, _))| (scale * t - t_true).map(f64::signum) * translation_weight)
+            .collect();
+        // d loss / d s, for the gradient through the scale.
+        let through_scale: f64 = signs
+            .iter()
+            .zip(&parts)
+            .map(|(g, ((t, _), _))| g.dot(t))
+            .sum();
+        for ((i, ((t, m), (t_true, r_true))), sign) in range.zip(&parts).zip(&signs) {
+            let r = so3::project(m);
+            loss += (r - r_true).abs().sum() * rotation_weight
+                + (scale * t - t_true).abs().sum() * translation_weight;
+            let mut dt = scale * sign;
+            if scale_aligned {
+                let ds = match norm > 1e-8 {
+                    true => (t_true - 2.0 * scale * t) / norm,
+                    false => t_true / 1e-8,
+                };
+                dt += through_scale * ds;
+            }
+            let dr = (r - r_true).map(f64::signum) * rotation_weight;
+            let dm = so3::project_backward(m, &dr);
+            let out = &mut gradient[i * OUTPUTS..(i + 1) * OUTPUTS];
+            for (slot, value) in out.iter_mut().zip(dt.iter().chain(dm.transpose().iter())) {
+                *slot = *value as f32;
+            }
+        }
     }
     (loss, gradient)
 }
@@ -104,13 +156,22 @@ pub fn run_probe(
     seed: u64,
     device: &Device,
 ) -> Result<(ProbeReport, Vec<ProbePath>), EvalError> {
+    // One training sample: a frame pair, or (scale-aligned) a whole sequence's pairs.
     let mut inputs: Vec<&Latent> = Vec::new();
     let mut targets: Vec<[f32; OUTPUTS]> = Vec::new();
+    let mut samples: Vec<std::ops::Range<usize>> = Vec::new();
     for sequence in train {
         let relative = relative_to_reference(&sequence.poses, 0);
+        let first = inputs.len();
         for (latent, pose) in sequence.latents.iter().zip(&relative).skip(1) {
             inputs.push(latent);
             targets.push(target(pose));
+            if spec.loss == ProbeLoss::Pairs {
+                samples.push(inputs.len() - 1..inputs.len());
+            }
+        }
+        if spec.loss == ProbeLoss::Trajectories && inputs.len() > first {
+            samples.push(first..inputs.len());
         }
     }
     let dims = inputs.first().map(|l| l.len()).ok_or_else(|| {
@@ -131,15 +192,17 @@ pub fn run_probe(
     let mut stream = Stream::new(&[seed, PROBE_TAG]);
     let mut losses = Vec::with_capacity(spec.steps);
     for _ in 0..spec.steps {
-        let picks: Vec<usize> = (0..spec.batch)
-            .map(|_| stream.below(inputs.len() as u64) as usize)
+        let picks: Vec<&std::ops::Range<usize>> = (0..spec.batch)
+            .map(|_| &samples[stream.below(samples.len() as u64) as usize])
             .collect();
-        let x: Vec<f32> = picks
+        let rows: Vec<usize> = picks.iter().flat_map(|range| (*range).clone()).collect();
+        let x: Vec<f32> = rows
             .iter()
             .flat_map(|&i| inputs[i].iter().copied())
             .collect();
-        let batch_targets: Vec<[f32; OUTPUTS]> = picks.iter().map(|&i| targets[i]).collect();
-        let x = Tensor::<2>::from_data(TensorData::new(x, [spec.batch, dims]), device);
+        let batch_targets: Vec<[f32; OUTPUTS]> = rows.iter().map(|&i| targets[i]).collect();
+        let groups: Vec<usize> = picks.iter().map(|range| range.len()).collect();
+        let x = Tensor::<2>::from_data(TensorData::new(x, [rows.len(), dims]), device);
         let outputs = probe.forward(x);
         let host = outputs
             .clone()
@@ -147,9 +210,10 @@ pub fn run_probe(
             .map_err(|e| EvalError::Tensor(format!("{e:?}")))?;
         // The projection runs on the host; the surrogate `sum(outputs * dL/doutputs)` carries
         // its exact gradient back into the MLP.
-        let (loss, gradient) = loss_and_gradient(&host, &batch_targets);
+        let scale_aligned = spec.loss == ProbeLoss::Trajectories;
+        let (loss, gradient) = loss_and_gradient(&host, &batch_targets, &groups, scale_aligned);
         let gradient =
-            Tensor::<2>::from_data(TensorData::new(gradient, [spec.batch, OUTPUTS]), device);
+            Tensor::<2>::from_data(TensorData::new(gradient, [rows.len(), OUTPUTS]), device);
         let surrogate = (outputs * gradient).sum();
         let grads = GradientsParams::from_grads(surrogate.backward(), &probe);
         losses.push(loss);
@@ -215,12 +279,83 @@ mod tests {
             .collect()
     }
 
+    /// Targets of `count` pairs with distinct rotations and translations.
+    fn some_targets(count: usize) -> Vec<[f32; OUTPUTS]> {
+        let poses = Trajectory::random(3, 5, count + 1).poses;
+        relative_to_reference(&poses, 0)[1..]
+            .iter()
+            .map(target)
+            .collect()
+    }
+
+    #[test]
+    fn trajectory_loss_ignores_the_scale_the_pair_loss_counts() {
+        let targets = some_targets(4);
+        // Exact rotations, translations twice too long.
+        let outputs: Vec<f32> = targets
+            .iter()
+            .flat_map(|t| {
+                let mut o = *t;
+                o[..3].iter_mut().for_each(|v| *v *= 2.0);
+                o
+            })
+            .collect();
+        let translation_sum: f64 = targets
+            .iter()
+            .flat_map(|t| t[..3].iter())
+            .map(|v| f64::from(v.abs()))
+            .sum();
+        let (pairs, _) = loss_and_gradient(&outputs, &targets, &[1; 4], false);
+        assert!(
+            (pairs - translation_sum / 12.0).abs() < 1e-6,
+            "{pairs} vs {}",
+            translation_sum / 12.0
+        );
+        let (trajectory, _) = loss_and_gradient(&outputs, &targets, &[4], true);
+        assert!(trajectory < 1e-6, "{trajectory}");
+    }
+
+    #[test]
+    fn trajectory_gradient_matches_finite_differences() {
+        let targets = some_targets(3);
+        let mut stream = Stream::new(&[11]);
+        let outputs: Vec<f32> = targets
+            .iter()
+            .flat_map(|t| t.map(|v| v + (stream.uniform() as f32 - 0.5) * 0.6))
+            .collect();
+        let (_, analytic) = loss_and_gradient(&outputs, &targets, &[3], true);
+        let step = 1e-3f32;
+        for i in 0..outputs.len() {
+            let (mut up, mut down) = (outputs.clone(), outputs.clone());
+            up[i] += step;
+            down[i] -= step;
+            let numeric = (loss_and_gradient(&up, &targets, &[3], true).0
+                - loss_and_gradient(&down, &targets, &[3], true).0)
+                / (2.0 * f64::from(step));
+            assert!(
+                (numeric - f64::from(analytic[i])).abs() < 2e-3,
+                "output {i}: numeric {numeric}, analytic {}",
+                analytic[i]
+            );
+        }
+    }
+
     #[test]
     fn probe_reads_informative_latents() {
+        probe_learns(ProbeLoss::Pairs, 160);
+    }
+
+    #[test]
+    fn scale_aligned_probe_reads_informative_latents() {
+        probe_learns(ProbeLoss::Trajectories, 160);
+    }
+
+    fn probe_learns(loss: ProbeLoss, pairs: usize) {
         let spec = ProbeSpec {
             steps: 300,
             batch: 32,
             width: 64,
+            loss,
             ..ProbeSpec::default()
         };
         let (report, paths) = run_probe(
@@ -231,7 +366,7 @@ mod tests {
             &Device::flex().autodiff(),
         )
         .unwrap();
-        assert_eq!(report.train_samples, 160);
+        assert_eq!(report.train_samples, pairs);
         assert_eq!(paths.len(), 8);
         assert!(
             report.metrics.at(10).unwrap().rotation_accuracy > 0.8,

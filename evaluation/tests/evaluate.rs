@@ -11,6 +11,13 @@
 //! to move the camera in about 70 s on 2 cores (a 3e-3 peak moved the renders as far but left
 //! the probe no better than the untrained model's). TPS uses all 8 frames of 96 transfers (2688
 //! frame pairs) so the comparison is not decided by a handful of renders.
+//!
+//! Why the evaluation draws 16 scenes (10 more than training saw): the release's pose probe
+//! reads PoseEnc's tokens before the pose head, which an untrained network's random features
+//! also describe. Trained on the 4 non-held-out scenes of the training set, the probe
+//! memorised them (training loss 0.11) and scored no better on held-out scenes than the
+//! untrained model's (AUC@30 0.114 vs 0.130); on 14 it generalises, and the trained features
+//! win (0.122 vs 0.085 after 800 probe steps; TPS 0.058 vs 0.000 on these scenes).
 
 use std::time::Instant;
 
@@ -28,6 +35,8 @@ use trainer_core::{XFactor, XFactorConfig};
 const SIDE: usize = 16;
 const STEPS: u64 = 1300;
 const SCENES: u64 = 6;
+/// Scenes the evaluation draws: the training scenes and 10 it never saw.
+const EVALUATION_SCENES: u64 = 16;
 const TRAJECTORIES: u64 = 8;
 const FRAMES: usize = 8;
 
@@ -90,15 +99,14 @@ fn trained_model_beats_untrained_on_tps_and_probe() {
 
     let spec = EvaluationSpec {
         seed: 0,
-        scenes: SCENES,
+        scenes: EVALUATION_SCENES,
         trajectories: TRAJECTORIES,
         frames: FRAMES,
         tps_pairs: 96,
         tps_frames: FRAMES,
         probe: ProbeSpec {
-            steps: 600,
+            steps: 800,
             batch: 64,
-            width: 128,
             ..ProbeSpec::default()
         },
         oracle: OracleSpec::GroundTruth,

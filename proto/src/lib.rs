@@ -17,7 +17,7 @@ pub mod v1 {
 }
 
 /// Version of the messages and their meaning. A coordinator refuses workers of another version.
-pub const PROTOCOL_VERSION: u32 = 3;
+pub const PROTOCOL_VERSION: u32 = 4;
 
 /// Largest message either side accepts (a collective chunk is at most a few MiB; assignments
 /// and reports are small). Anything bigger is refused before it is buffered.
@@ -81,13 +81,18 @@ impl tonic::service::Interceptor for RequireToken {
     }
 }
 
-/// Compares without an early exit, so response time does not reveal how much of a guessed
-/// token was right.
-fn constant_time_equal(a: &[u8], b: &[u8]) -> bool {
-    if a.len() != b.len() {
-        return false;
-    }
-    a.iter().zip(b).fold(0u8, |diff, (x, y)| diff | (x ^ y)) == 0
+/// Whether `presented` equals `expected`, compared without an early exit and always over
+/// `expected`'s length, so response time reveals neither how much of a guess was right nor
+/// the secret's length.
+pub fn constant_time_equal(presented: &[u8], expected: &[u8]) -> bool {
+    let length_differs = u8::from(presented.len() != expected.len());
+    expected
+        .iter()
+        .enumerate()
+        .fold(length_differs, |diff, (i, byte)| {
+            diff | (presented.get(i).copied().unwrap_or(!byte) ^ byte)
+        })
+        == 0
 }
 
 #[cfg(test)]
@@ -112,6 +117,15 @@ mod tests {
         assert!(wrong.message().contains("wrong job token"));
         let missing = check.call(request_with(None)).unwrap_err();
         assert!(missing.message().contains("missing job token"));
+    }
+
+    #[test]
+    fn comparison_needs_every_byte_and_the_length() {
+        assert!(constant_time_equal(b"secret", b"secret"));
+        for guess in [&b"secres"[..], b"secre", b"secrets", b"", b"Secret"] {
+            assert!(!constant_time_equal(guess, b"secret"), "{guess:?}");
+        }
+        assert!(constant_time_equal(b"", b""));
     }
 
     #[test]

@@ -146,6 +146,10 @@ pub struct StoredDataset {
     pub uri: String,
     /// Fingerprint of the listing the coordinator indexed.
     pub fingerprint: ListingFingerprint,
+    /// A split file (JSON, training sequence ids as keys) that replaces the layout's
+    /// train/test rule: relative to `uri`, or a path or URI of its own.
+    #[serde(default)]
+    pub split_file: Option<String>,
 }
 
 /// Where a stage's samples come from.

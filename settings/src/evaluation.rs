@@ -102,6 +102,23 @@ pub struct ProbeSpec {
     pub learning_rate: f64,
     /// Scenes held out for testing (the last ones).
     pub test_scenes: u64,
+    /// What one training sample is, and so how translation scale is treated.
+    pub loss: ProbeLoss,
+}
+
+/// The release's two probe losses (`nn/losses.py`): both are `mean |R - R_gt| +
+/// mean |t - t_gt|`; they differ in what a sample is and whether translation scale counts.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ProbeLoss {
+    /// `camera_loss`: a sample is one frame pair `(frame 0, frame i)`, translations compared
+    /// as they are.
+    #[default]
+    Pairs,
+    /// `camera_seq_loss`: a sample is a whole sequence's pairs, whose predicted translations
+    /// are first scaled onto the ground truth by `<t_gt, t> / <t, t>` (one factor per
+    /// sequence, gradients flowing through it), so only the trajectory's shape counts.
+    Trajectories,
 }
 
 impl Default for ProbeSpec {
@@ -114,6 +131,7 @@ impl Default for ProbeSpec {
             width: 64,
             learning_rate: 1e-3,
             test_scenes: 2,
+            loss: ProbeLoss::Pairs,
         }
     }
 }

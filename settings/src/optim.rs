@@ -33,16 +33,28 @@ impl Default for Schedule {
 }
 
 impl Schedule {
-    /// The learning rate used for the update of `step` (counted from 0).
+    /// The learning rate used for the update of `step` (counted from 0), computed as the
+    /// release's optax schedule computes it under XLA: in `f32`, the warm-up in optax's
+    /// polynomial form `(init - peak) * (1 - step / warmup) + peak` with the multiply-add fused
+    /// (XLA contracts it), the decay as `peak * ((1 - alpha) * cosine + alpha)`. Rounding the
+    /// same way matters early in warm-up, where the `f32` difference of two numbers near the
+    /// peak is all that is left: at step 2 the release's rate is `2.0000934e-7`, not the
+    /// `2.00001e-7` of exact arithmetic (a 4e-5 relative difference in every update). One
+    /// consequence: the `1e-12` initial rate rounds away and step 0's rate is `0`, as in the
+    /// release.
     pub fn learning_rate(&self, step: u64) -> f64 {
+        let peak = self.peak_lr as f32;
         if step < self.warmup_steps {
-            let progress = step as f64 / self.warmup_steps as f64;
-            return self.initial_lr + (self.peak_lr - self.initial_lr) * progress;
+            let remaining = 1.0f32 - step as f32 / self.warmup_steps as f32;
+            let span = (self.initial_lr - self.peak_lr) as f32;
+            return f64::from(span.mul_add(remaining, peak));
         }
         let decay_steps = self.total_steps.saturating_sub(self.warmup_steps).max(1);
-        let progress = ((step - self.warmup_steps) as f64 / decay_steps as f64).min(1.0);
-        let cosine = 0.5 * (1.0 + (std::f64::consts::PI * progress).cos());
-        self.final_lr + (self.peak_lr - self.final_lr) * cosine
+        let count = (step - self.warmup_steps).min(decay_steps) as f32;
+        let cosine = 0.5f32 * (1.0 + (std::f32::consts::PI * count / decay_steps as f32).cos());
+        let alpha = self.final_lr / self.peak_lr;
+        let decayed = ((1.0 - alpha) as f32).mul_add(cosine, alpha as f32);
+        f64::from(peak * decayed)
     }
 }
 
@@ -85,12 +97,21 @@ mod tests {
     #[test]
     fn schedule_matches_the_paper_at_its_landmarks() {
         let schedule = Schedule::default();
-        let close = |a: f64, b: f64| (a - b).abs() <= 1e-12 * b.abs().max(1e-12);
-        assert!(close(schedule.learning_rate(0), 1e-12));
-        assert!(close(schedule.learning_rate(2000), 2e-4 + 0.5e-12));
+        let close = |a: f64, b: f64| (a - b).abs() <= 1e-6 * b.abs();
+        assert!(close(schedule.learning_rate(2000), 2e-4));
         assert!(close(schedule.learning_rate(4000), 4e-4));
         assert!(close(schedule.learning_rate(52_000), 2.5e-4));
         assert!(close(schedule.learning_rate(100_000), 1e-4));
         assert!(close(schedule.learning_rate(150_000), 1e-4));
+    }
+
+    #[test]
+    fn early_warm_up_rounds_as_the_release_in_f32() {
+        let schedule = Schedule::default();
+        // What optax under XLA computes for the paper's schedule (the clu-checkpoint fixture's
+        // third update shows it): the fused f32 multiply-add, not exact arithmetic.
+        assert_eq!(schedule.learning_rate(2) as f32, 2.000_093_4e-7_f32);
+        assert_eq!(schedule.learning_rate(0), 0.0);
+        assert!(schedule.learning_rate(1) > 0.0);
     }
 }

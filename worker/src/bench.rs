@@ -5,7 +5,7 @@ use std::time::Duration;
 
 use tokio::sync::watch;
 
-use crate::collective::{CollectiveService, Link, Ring, spawn_server};
+use crate::collective::{CollectiveService, Link, Ring, RingKeys, spawn_server};
 
 /// Token of the benchmark's private ring.
 const BENCH_TOKEN: &str = "allreduce-bench";
@@ -79,7 +79,13 @@ pub fn run_rank(args: &BenchArgs) -> anyhow::Result<()> {
         };
         spawn_server(listener, service, &link)?;
         let (_cancel, cancelled) = watch::channel(false);
-        let mut ring = Ring::connect(&mailbox, rank, &peers, 1, &link, cancelled).await?;
+        // Every rank of the benchmark derives the same keys; the job's come from the coordinator.
+        let left = (rank + peers.len() - 1) % peers.len();
+        let keys = RingKeys {
+            own: format!("bench-rank-{rank}"),
+            left: format!("bench-rank-{left}"),
+        };
+        let mut ring = Ring::connect(&mailbox, rank, &peers, 1, &keys, &link, cancelled).await?;
         if let Some(values) = chunk_values {
             ring.set_chunk_values(values);
         }

@@ -105,6 +105,7 @@ pub fn commit(
             phase: phase_to_wire(request.phase) as i32,
             step: request.step,
             location: location.clone(),
+            session: progress.session(),
         }))
         .map_err(|s| anyhow!("commit of {location} failed: {}", s.message()))?
         .into_inner();

@@ -1,8 +1,8 @@
 //! The worker's session with the coordinator: connecting, registering, heartbeats that carry
 //! its progress, waiting for assignments, and leaving.
 
-use std::sync::Arc;
 use std::sync::atomic::{AtomicI32, AtomicU64, Ordering};
+use std::sync::{Arc, RwLock};
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, anyhow, bail};
@@ -28,6 +28,8 @@ pub type Client = CoordinatorClient<InterceptedService<Channel, proto::AttachTok
 pub struct Progress {
     /// This worker's id (0 before registration).
     pub worker: AtomicU64,
+    /// The secret its registration was given; every request naming the id carries it.
+    pub session: RwLock<String>,
     /// The generation being worked in.
     pub generation: AtomicU64,
     /// Steps done in it.
@@ -47,6 +49,7 @@ impl Progress {
         let (cancel, _) = watch::channel(false);
         Self {
             worker: AtomicU64::new(0),
+            session: RwLock::new(String::new()),
             generation: AtomicU64::new(0),
             step: AtomicU64::new(0),
             activity: AtomicI32::new(Activity::Idle as i32),
@@ -58,6 +61,14 @@ impl Progress {
     /// This worker's id.
     pub fn worker_id(&self) -> u64 {
         self.worker.load(Ordering::SeqCst)
+    }
+
+    /// This registration's secret.
+    pub fn session(&self) -> String {
+        self.session
+            .read()
+            .unwrap_or_else(std::sync::PoisonError::into_inner)
+            .clone()
     }
 
     /// Records what the worker does next; the next heartbeat carries it.
@@ -77,6 +88,7 @@ pub fn leave(runtime: &Runtime, client: &mut Client, progress: &Progress) -> any
     let request = LeaveRequest {
         worker_id: progress.worker_id(),
         reason: "SIGTERM".into(),
+        session: progress.session(),
     };
     let said = runtime.block_on(async {
         tokio::time::timeout(Duration::from_secs(5), client.leave(request)).await
@@ -149,6 +161,10 @@ pub async fn register(
         .map_err(|status| anyhow!("the coordinator refused registration: {}", status.message()))?
         .into_inner();
     progress.worker.store(reply.worker_id, Ordering::SeqCst);
+    *progress
+        .session
+        .write()
+        .unwrap_or_else(std::sync::PoisonError::into_inner) = reply.session;
     tracing::info!(worker = reply.worker_id, job = %reply.job_name, collective = %address, "registered");
     Ok(Duration::from_secs_f64(
         reply.heartbeat_interval_s.max(0.05),
@@ -166,6 +182,7 @@ pub async fn await_assignment(
         let request = AwaitAssignmentRequest {
             worker_id: progress.worker_id(),
             after_generation: after,
+            session: progress.session(),
         };
         match client.await_assignment(request).await {
             Ok(reply) => return Ok(reply.into_inner()),
@@ -189,6 +206,7 @@ pub async fn heartbeats(mut client: Client, progress: Arc<Progress>, interval: D
             generation,
             step: progress.step.load(Ordering::SeqCst),
             activity: progress.activity.load(Ordering::SeqCst),
+            session: progress.session(),
         };
         match client.heartbeat(request).await {
             Ok(reply) => {

@@ -21,7 +21,7 @@ use trainer_core::lpips::Lpips;
 use trainer_core::trainer::Trainer;
 
 use crate::checkpoints::{self, CommitRequest};
-use crate::collective::Ring;
+use crate::collective::{Ring, RingKeys};
 use crate::daemon::{Ending, Group};
 use crate::session::Client;
 use crate::{device, metrics};
@@ -93,8 +93,16 @@ pub fn train_generation(
         let dir = scratch.join("init");
         let _ = std::fs::remove_dir_all(&dir);
         runtime.block_on(checkpoints::download(&assignment.init_weights_from, &dir))?;
-        Trainer::from_weights(train.clone(), &dir, lpips, &device)
-            .with_context(|| format!("initial weights from {}", assignment.init_weights_from))?
+        let trainer = Trainer::from_weights(train.clone(), &dir, lpips, &device)
+            .with_context(|| format!("initial weights from {}", assignment.init_weights_from))?;
+        anyhow::ensure!(
+            *trainer.model_config() == model_config,
+            "initial weights at {} are a different model ({:?}) from the job's ({:?})",
+            assignment.init_weights_from,
+            trainer.model_config(),
+            model_config
+        );
+        trainer
     } else {
         let model = XFactor::new(&model_config, train.seed, &device)?;
         Trainer::new(train.clone(), model_config, model, lpips, &device)?
@@ -126,6 +134,10 @@ pub fn train_generation(
         rank,
         &assignment.peers,
         generation,
+        &RingKeys {
+            own: assignment.ring_secret.clone(),
+            left: assignment.left_ring_secret.clone(),
+        },
         link,
         progress.cancel.subscribe(),
     ))?;
@@ -196,6 +208,7 @@ pub fn train_generation(
         registry.raise_to(&metrics::SKIPPED_FRAMES, &[], skipped_frames as f64);
         let report = StepReport {
             worker_id: progress.worker_id(),
+            session: progress.session(),
             generation,
             phase: assignment.phase,
             step,

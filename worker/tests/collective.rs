@@ -1,5 +1,6 @@
-//! The ring all-reduce between in-process ranks on loopback: sums, chunk pipelining, and a
-//! peer that sends a chunk of the wrong size.
+//! The ring all-reduce between in-process ranks on loopback: sums, chunk pipelining, a peer
+//! that sends a chunk of the wrong size, and streams that do not carry the left neighbour's
+//! ring secret.
 
 use std::time::Duration;
 
@@ -8,7 +9,8 @@ use proto::v1::Chunk;
 use proto::v1::collective_client::CollectiveClient;
 use tokio::sync::watch;
 use worker::collective::{
-    CollectiveError, CollectiveService, Link, Mailbox, PeerTls, Ring, spawn_server,
+    CollectiveError, CollectiveService, Link, Mailbox, PeerTls, RING_SECRET_KEY, Ring, RingKeys,
+    spawn_server,
 };
 
 const TOKEN: &str = "ring-test";
@@ -47,6 +49,18 @@ async fn serve() -> (String, std::sync::Arc<Mailbox>) {
     serve_with(&plain()).await
 }
 
+/// The secret of `rank` in these tests (the coordinator draws them at random).
+fn secret(rank: usize) -> String {
+    format!("ring-secret-of-rank-{rank}")
+}
+
+fn keys(rank: usize, world: usize) -> RingKeys {
+    RingKeys {
+        own: secret(rank),
+        left: secret((rank + world - 1) % world),
+    }
+}
+
 async fn join(
     mailbox: &Mailbox,
     rank: usize,
@@ -54,9 +68,22 @@ async fn join(
     generation: u64,
     cancelled: watch::Receiver<bool>,
 ) -> Ring {
-    Ring::connect(mailbox, rank, peers, generation, &plain(), cancelled)
+    let keys = keys(rank, peers.len());
+    Ring::connect(mailbox, rank, peers, generation, &keys, &plain(), cancelled)
         .await
         .unwrap()
+}
+
+/// A stream of `chunks` to `address` presenting `secret`.
+fn pushed(
+    chunks: Vec<Chunk>,
+    secret: &str,
+) -> tonic::Request<tokio_stream::Iter<std::vec::IntoIter<Chunk>>> {
+    let mut request = tonic::Request::new(tokio_stream::iter(chunks));
+    request
+        .metadata_mut()
+        .insert(RING_SECRET_KEY, secret.parse().unwrap());
+    request
 }
 
 async fn channel_to(address: &str) -> tonic::transport::Channel {
@@ -130,7 +157,8 @@ async fn a_chunk_of_the_wrong_size_is_refused_by_name() {
         values: Bytes::from(vec![0u8; 4 * 49]),
         sender: 1,
     };
-    let _ = rogue.push(tokio_stream::iter(vec![chunk])).await;
+    // A misbehaving member: it holds rank 1's secret but sends a short chunk.
+    let _ = rogue.push(pushed(vec![chunk], &secret(1))).await;
     let (result, _) = honest.await.unwrap();
     match result {
         Err(CollectiveError::BadChunk { sender, detail }) => {
@@ -166,7 +194,8 @@ async fn two_ranks_sum_over_tls_and_plain_text_is_refused() {
     for (rank, (_, mailbox)) in servers.into_iter().enumerate() {
         let (peers, cancelled, link) = (peers.clone(), cancelled.clone(), link.clone());
         tasks.push(tokio::spawn(async move {
-            let mut ring = Ring::connect(&mailbox, rank, &peers, 3, &link, cancelled)
+            let keys = keys(rank, peers.len());
+            let mut ring = Ring::connect(&mailbox, rank, &peers, 3, &keys, &link, cancelled)
                 .await
                 .unwrap();
             let mut values = vec![rank as f32 + 1.0; 300];
@@ -192,4 +221,61 @@ async fn two_ranks_sum_over_tls_and_plain_text_is_refused() {
         let refused = client.push(tokio_stream::iter(vec![chunk])).await;
         assert!(refused.is_err(), "a plain-text stream reached a TLS server");
     }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn only_the_left_neighbour_of_the_generation_may_stream() {
+    let (address_0, mailbox_0) = serve().await;
+    let (address_1, mailbox_1) = serve().await;
+    let peers = vec![address_0.clone(), address_1];
+    let (_cancel, cancelled) = watch::channel(false);
+    // The intruder holds the job token, and even rank 0's own secret, but not rank 1's: its
+    // chunk would pass every shape check, and must never reach the sum.
+    let mut intruder = CollectiveClient::with_interceptor(
+        channel_to(&address_0).await,
+        proto::AttachToken::new(TOKEN).unwrap(),
+    );
+    let forged = Chunk {
+        generation: 5,
+        operation: 0,
+        ring_step: 0,
+        segment: 1,
+        offset: 50,
+        values: Bytes::from(vec![0x7fu8; 4 * 50]),
+        sender: 1,
+    };
+    let early = tokio::spawn(async move {
+        let refused = intruder
+            .push(pushed(vec![forged.clone()], &secret(0)))
+            .await
+            .unwrap_err();
+        let stale = intruder
+            .push(pushed(
+                vec![Chunk {
+                    generation: 4,
+                    ..forged
+                }],
+                &secret(1),
+            ))
+            .await
+            .unwrap_err();
+        (refused, stale)
+    });
+    let mut tasks = Vec::new();
+    for (rank, mailbox) in [(0, mailbox_0), (1, mailbox_1)] {
+        let (peers, cancelled) = (peers.clone(), cancelled.clone());
+        tasks.push(tokio::spawn(async move {
+            let mut ring = join(&mailbox, rank, &peers, 5, cancelled).await;
+            let mut values = vec![rank as f32 + 1.0; 100];
+            ring.all_reduce(&mut values).await.unwrap();
+            values
+        }));
+    }
+    for task in tasks {
+        assert!(task.await.unwrap().iter().all(|&v| v == 3.0));
+    }
+    let (refused, stale) = early.await.unwrap();
+    assert_eq!(refused.code(), tonic::Code::PermissionDenied, "{refused:?}");
+    assert!(refused.message().contains("left neighbour"), "{refused:?}");
+    assert_eq!(stale.code(), tonic::Code::FailedPrecondition, "{stale:?}");
 }

@@ -95,6 +95,11 @@ pub struct ClusterConfig {
     /// evaluation stage. Every key is optional (`evaluate: {}` takes the defaults).
     #[serde(default)]
     pub evaluate: Option<EvaluationSpec>,
+    /// A checkpoint directory (ours, or the authors' weights brought in by
+    /// `xfactor import-checkpoint`) whose weights start stage 1 instead of a fresh
+    /// initialisation; the optimiser starts afresh at step 0. Its model must be the job's.
+    #[serde(default)]
+    pub init_weights: Option<NonEmpty>,
 }
 
 /// PEM files of the coordinator's TLS identity. They are read when the job starts, so a
@@ -215,6 +220,11 @@ pub struct DatasetConfig {
     pub kind: DatasetKind,
     /// Root: a path, `file://`, `s3://`, `gs://` or `az://`.
     pub uri: NonEmpty,
+    /// The paper's split file for this dataset (JSON, training sequence ids as keys), used
+    /// instead of the layout's train/test rule: a path relative to `uri`, or a path or URI of
+    /// its own.
+    #[serde(default)]
+    pub split_file: Option<NonEmpty>,
     /// Stage-1 mixture weight and window range (defaults: the paper's).
     #[serde(default)]
     pub stage1: Option<SamplingOverride>,

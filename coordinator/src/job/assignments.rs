@@ -33,10 +33,14 @@ pub fn train(
         .filter(|c| c.phase == phase)
         .map(|c| c.location.clone())
         .unwrap_or_default();
-    let init_weights_from = if phase == Phase::Stage2 && resume_from.is_empty() {
-        durable.stage1_final.clone().unwrap_or_default()
-    } else {
-        String::new()
+    let init_weights_from = match phase {
+        _ if !resume_from.is_empty() => String::new(),
+        Phase::Stage2 => durable.stage1_final.clone().unwrap_or_default(),
+        _ => config
+            .init_weights
+            .as_ref()
+            .map(|uri| uri.0.clone())
+            .unwrap_or_default(),
     };
     Assignment {
         generation,
@@ -56,6 +60,9 @@ pub fn train(
             model: Some((&plan.model).into()),
             train: Some((&stage.train).into()),
             data: Some((&stage.data).into()),
+            // Drawn by the service, which holds the randomness this pure state does not.
+            ring_secret: String::new(),
+            left_ring_secret: String::new(),
         })),
     }
 }

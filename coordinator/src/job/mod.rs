@@ -122,6 +122,8 @@ pub struct JobState {
     /// Position in `report.steps` of each `(phase, step, generation)`, so a report finds its
     /// record without scanning the history.
     step_index: HashMap<(Phase, u64, u64), usize>,
+    /// Records of `report.steps` before this index went to the history writer.
+    history_cursor: usize,
     current_step: u64,
     last_loss: f32,
 }
@@ -174,6 +176,7 @@ impl JobState {
                 ..Report::default()
             },
             step_index: HashMap::new(),
+            history_cursor: 0,
             skipped: HashMap::new(),
             durable,
             plan,

@@ -1,4 +1,5 @@
-//! What the job state tells operators and the service: status, throughput, curves.
+//! What the job state tells operators and the service: status, throughput, curves, and the
+//! step records for the history file.
 
 use std::collections::BTreeMap;
 
@@ -6,9 +7,28 @@ use proto::v1::JobStatus;
 use settings::Phase;
 use telemetry::curves::Curve;
 
-use super::JobState;
+use super::{JobState, StepRecord};
 
 impl JobState {
+    /// Step records not yet handed out, oldest first: every one but the newest two, which may
+    /// still gain other ranks' reports (a rank finishes step `s + 1` only after every rank
+    /// finished `s`, in the all-reduce, but a report can be late by a step), or all of them
+    /// once the job is over (`all`).
+    pub fn take_history(&mut self, all: bool) -> Vec<StepRecord> {
+        let steps = &self.report.steps;
+        let end = if all {
+            steps.len()
+        } else {
+            steps.len().saturating_sub(2)
+        };
+        let taken = steps
+            .get(self.history_cursor..end)
+            .map(<[StepRecord]>::to_vec)
+            .unwrap_or_default();
+        self.history_cursor = self.history_cursor.max(end);
+        taken
+    }
+
     /// Progress for the `status` command.
     pub fn status(&self) -> JobStatus {
         let phase = self.durable.phase;

@@ -13,6 +13,11 @@ use crate::config::ClusterConfig;
 const BASE: u64 = 1000;
 
 fn plan(evaluate: bool) -> Plan {
+    plan_with(if evaluate { "evaluate: {}\n" } else { "" })
+}
+
+/// The unit job's plan with `extra` top-level YAML.
+fn plan_with(extra: &str) -> Plan {
     let yaml = format!(
         "job: unit
 auth: {{token: t}}
@@ -23,8 +28,7 @@ stage1: {{steps: 4, global_batch: 2, micro_batch: 1, lpips_weight: 0}}
 stage2: {{steps: 2, global_batch: 2, micro_batch: 1, lpips_weight: 0}}
 checkpoint: {{uri: /tmp/unit-ckpt, every: 2}}
 workers: {{expected: 2, minimum: 1, regroup_grace_s: 1}}
-{}",
-        if evaluate { "evaluate: {}\n" } else { "" }
+{extra}"
     );
     let config = ClusterConfig::from_yaml(&yaml, "unit.yaml").unwrap();
     tokio::runtime::Builder::new_current_thread()
@@ -52,8 +56,12 @@ struct Run {
 
 impl Run {
     fn new(evaluate: bool, durable: Option<Durable>) -> Self {
+        Self::of(plan(evaluate), durable)
+    }
+
+    fn of(plan: Plan, durable: Option<Durable>) -> Self {
         let now = Instant::now();
-        let mut state = JobState::starting_at(plan(evaluate), timing(), durable, BASE);
+        let mut state = JobState::starting_at(plan, timing(), durable, BASE);
         let workers = (0..2)
             .map(|i| state.register(format!("w{i}"), format!("127.0.0.1:{}", 7000 + i), now))
             .collect();
@@ -386,4 +394,31 @@ fn skipped_frames_past_the_job_limit_stop_the_job_naming_examples() {
         next[0].as_ref().and_then(|a| a.work.as_ref()),
         Some(Work::Finish(_))
     ));
+}
+
+#[test]
+fn init_weights_start_stage1_and_only_until_its_first_commit() {
+    let mut run = Run::of(plan_with("init_weights: s3://released/xfactor-2v\n"), None);
+    let first = run.assign(0);
+    let generation = first[0].as_ref().unwrap().generation;
+    for assignment in &first {
+        let stage1 = train(assignment);
+        assert_eq!(stage1.init_weights_from, "s3://released/xfactor-2v");
+        assert!(stage1.resume_from.is_empty());
+    }
+    let w0 = run.workers[0];
+    assert!(!run.commit(w0, Phase::Stage1, 2, generation));
+    assert!(run.state.leave(run.workers[1], "stopping"));
+    run.workers = vec![w0];
+    assert!(run.assign(generation)[0].is_none(), "the grace period runs");
+    run.now += Duration::from_secs(2);
+    let regrouped = run.assign(generation);
+    let resumed = train(&regrouped[0]);
+    assert_eq!(resumed.resume_from, "mem://stage1/2");
+    assert!(resumed.init_weights_from.is_empty(), "a commit wins");
+    let generation = regrouped[0].as_ref().unwrap().generation;
+    assert!(run.commit(w0, Phase::Stage1, 4, generation));
+    let next = run.assign(generation);
+    let stage2 = train(&next[0]);
+    assert_eq!(stage2.init_weights_from, "mem://stage1/4");
 }

@@ -16,11 +16,13 @@ use tokio_util::sync::CancellationToken;
 use tonic::service::interceptor::InterceptedService;
 
 use crate::health::JobHealth;
-use crate::job::{JobState, Report, Timing};
+use crate::job::{JobState, Report, StepRecord, Timing};
 use crate::metrics;
 use crate::plan::Plan;
 
+pub mod history;
 mod rpc;
+mod sessions;
 pub mod store;
 
 /// The service: shared job state plus a signal for waiters.
@@ -36,6 +38,10 @@ pub struct CoordinatorService {
     metrics: Arc<Registry>,
     /// The version of `job.json` this coordinator last read or wrote (see `store::write_durable`).
     durable_version: Arc<Mutex<Option<ObjectVersion>>>,
+    /// Each registration's secret, checked on every request that names a worker.
+    sessions: Arc<sessions::Sessions>,
+    /// Each generation's ring secrets, handed out with training assignments.
+    ring_secrets: Arc<sessions::RingSecrets>,
 }
 
 /// Why a job could not run.
@@ -128,6 +134,8 @@ impl CoordinatorService {
             heartbeat_interval_s,
             metrics: Arc::new(Registry::new()),
             durable_version: Arc::new(Mutex::new(durable_version)),
+            sessions: Arc::default(),
+            ring_secrets: Arc::default(),
         })
     }
 
@@ -164,6 +172,14 @@ impl CoordinatorService {
             .map_err(|e| store::chain(&e));
         if let Err(error) = written {
             tracing::warn!(%error, "the failed job's state was not written to job.json");
+        }
+    }
+
+    /// Adds `records` to the history under the checkpoint URI. A failure is logged and the
+    /// records are kept for the next attempt: the report holds every step too.
+    async fn append_history(&self, history: &Mutex<history::History>, records: &[StepRecord]) {
+        if let Err(error) = history.lock().await.append(records).await {
+            tracing::warn!(error = %store::chain(&error), "step history not written; retrying with the next steps");
         }
     }
 
@@ -234,19 +250,27 @@ impl CoordinatorService {
                 .serve_with_shutdown(address, async move { stop_server.notified().await }),
         );
         tracing::info!(%address, "coordinator listening");
+        let history = Arc::new(Mutex::new(
+            history::History::open(self.checkpoints.clone())
+                .await
+                .map_err(ServeError::OpenStore)?,
+        ));
         let ticker = {
             let service = self.clone();
             let health = health.clone();
+            let history = history.clone();
             async move {
                 let mut phase = service.state.lock().await.phase();
                 loop {
                     tokio::time::sleep(Duration::from_millis(50)).await;
-                    let (changed, done, now_phase) = {
+                    let (changed, done, now_phase, records) = {
                         let mut state = service.state.lock().await;
                         let changed = state.tick(Instant::now());
                         service.publish(&state);
-                        (changed, state.finished(), state.phase())
+                        let done = state.finished();
+                        (changed, done, state.phase(), state.take_history(done))
                     };
+                    service.append_history(&history, &records).await;
                     if changed {
                         service.changed.notify_waiters();
                     }
@@ -273,6 +297,8 @@ impl CoordinatorService {
             () = shutdown => tracing::warn!("shutdown requested: the job stops; rerun to resume from its last commit"),
         }
         self.stopping.cancel();
+        let records = self.state.lock().await.take_history(true);
+        self.append_history(&history, &records).await;
         self.record_failure().await;
         health.job_ending().await;
         health.close().await;

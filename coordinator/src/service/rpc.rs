@@ -54,6 +54,7 @@ impl Coordinator for CoordinatorService {
     ) -> Result<Response<Assignment>, Status> {
         let request = request.into_inner();
         let span = tracing::debug_span!("rpc_await_assignment", worker = request.worker_id);
+        self.sessions.check(request.worker_id, &request.session)?;
         self.assign(request).instrument(span).await
     }
 
@@ -63,6 +64,7 @@ impl Coordinator for CoordinatorService {
     ) -> Result<Response<HeartbeatReply>, Status> {
         let request = request.into_inner();
         let span = tracing::trace_span!("rpc_heartbeat", worker = request.worker_id);
+        self.sessions.check(request.worker_id, &request.session)?;
         async {
             let activity = proto::v1::Activity::try_from(request.activity).map_err(|_| {
                 malformed(ConvertError::Unknown {
@@ -93,6 +95,7 @@ impl Coordinator for CoordinatorService {
             worker = report.worker_id,
             step = report.step
         );
+        self.sessions.check(report.worker_id, &report.session)?;
         async {
             let phase = phase_from_wire(report.phase, "step.phase").map_err(malformed)?;
             let mut state = self.state.lock().await;
@@ -114,6 +117,7 @@ impl Coordinator for CoordinatorService {
     ) -> Result<Response<CommitAck>, Status> {
         let commit = request.into_inner();
         let span = tracing::info_span!("rpc_commit", phase = commit.phase, step = commit.step);
+        self.sessions.check(commit.worker_id, &commit.session)?;
         self.record_commit(commit).instrument(span).await
     }
 
@@ -130,6 +134,7 @@ impl Coordinator for CoordinatorService {
     async fn leave(&self, request: Request<LeaveRequest>) -> Result<Response<LeaveReply>, Status> {
         let request = request.into_inner();
         let span = tracing::info_span!("rpc_leave", worker = request.worker_id);
+        self.sessions.check(request.worker_id, &request.session)?;
         async {
             let known = {
                 let mut state = self.state.lock().await;
@@ -191,12 +196,14 @@ impl CoordinatorService {
             Instant::now(),
         );
         let job_name = state.plan().config.job.0.clone();
+        let session = self.sessions.issue(id)?;
         drop(state);
         self.changed.notify_waiters();
         Ok(Response::new(RegisterReply {
             worker_id: id,
             job_name,
             heartbeat_interval_s: self.heartbeat_interval_s,
+            session,
         }))
     }
 
@@ -214,7 +221,10 @@ impl CoordinatorService {
                     Instant::now(),
                 ) {
                     Err(refusal) => return Err(refused(refusal)),
-                    Ok(Some(assignment)) => return Ok(Response::new(assignment)),
+                    Ok(Some(mut assignment)) => {
+                        self.ring_secrets.fill(&mut assignment)?;
+                        return Ok(Response::new(assignment));
+                    }
                     Ok(None) => {}
                 }
                 if state.tick(Instant::now()) {

@@ -7,7 +7,7 @@ use settings::data::{
     DataSource, DataSpec, DatasetKind, DatasetSampling, ListingFingerprint, SamplerConfig,
     StoredDataset,
 };
-use settings::evaluation::{EvaluationSpec, OracleSpec, ProbeSpec};
+use settings::evaluation::{EvaluationSpec, OracleSpec, ProbeLoss, ProbeSpec};
 use settings::objective::{AugmentConfig, Stage1Config, Stage2Config};
 use settings::optim::{AdamWConfig, Schedule};
 use settings::train::{StageObjective, TrainConfig};
@@ -324,6 +324,7 @@ impl From<&DataSpec> for v1::DataSettings {
                             newest: s.fingerprint.newest,
                             paths_crc: s.fingerprint.paths_crc,
                         }),
+                        split_file: s.split_file.clone(),
                     })
                     .collect(),
             }),
@@ -380,6 +381,7 @@ impl TryFrom<&v1::DataSettings> for DataSpec {
                                 newest: f.newest,
                                 paths_crc: f.paths_crc,
                             },
+                            split_file: s.split_file.clone(),
                         })
                     })
                     .collect::<Result<_, ConvertError>>()?,
@@ -444,6 +446,10 @@ impl From<&EvaluationSpec> for v1::EvaluationSettings {
                 width: e.probe.width as u64,
                 learning_rate: e.probe.learning_rate,
                 test_scenes: e.probe.test_scenes,
+                loss: match e.probe.loss {
+                    ProbeLoss::Pairs => v1::ProbeLoss::Pairs,
+                    ProbeLoss::Trajectories => v1::ProbeLoss::Trajectories,
+                } as i32,
             }),
             oracle: Some(oracle),
             lpips_weights: e
@@ -482,6 +488,16 @@ impl TryFrom<&v1::EvaluationSettings> for EvaluationSpec {
                 width: size(probe.width),
                 learning_rate: probe.learning_rate,
                 test_scenes: probe.test_scenes,
+                loss: match v1::ProbeLoss::try_from(probe.loss) {
+                    Ok(v1::ProbeLoss::Pairs) => ProbeLoss::Pairs,
+                    Ok(v1::ProbeLoss::Trajectories) => ProbeLoss::Trajectories,
+                    Err(_) => {
+                        return Err(ConvertError::Unknown {
+                            field: "evaluate.probe.loss",
+                            value: probe.loss,
+                        });
+                    }
+                },
             },
             oracle,
             lpips_weights: e.lpips_weights.as_ref().map(Into::into),

@@ -47,6 +47,7 @@ fn every_setting_survives_the_wire() {
                 newest: -3,
                 paths_crc: 99,
             },
+            split_file: Some("splits/co3d_train.json".into()),
         }]),
     ] {
         let spec = DataSpec {
@@ -67,6 +68,10 @@ fn every_setting_survives_the_wire() {
             args: vec!["--fast".into()],
         },
         lpips_weights: Some("lpips.safetensors".into()),
+        probe: ProbeSpec {
+            loss: ProbeLoss::Trajectories,
+            ..ProbeSpec::default()
+        },
         ..EvaluationSpec::default()
     };
     let back = EvaluationSpec::try_from(&v1::EvaluationSettings::from(&evaluation)).unwrap();

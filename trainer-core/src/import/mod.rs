@@ -22,6 +22,8 @@ use crate::flax::{FlaxError, FlaxTensors, HostTensor, PARAMS_PREFIX, load_flax};
 use crate::lpips::Lpips;
 use crate::model::XFactor;
 use crate::trainer::{TrainerState, write_host_tensors};
+use settings::Phase;
+use settings::commit::{CommitFile, CommitManifest, MANIFEST_NAME};
 use settings::model::{ConfigError, XFactorConfig};
 
 /// Where the release keeps the LPIPS parameters inside its `TrainState`.
@@ -436,7 +438,9 @@ impl ImportedCheckpoint {
 
     /// Writes `out/model.safetensors` (+ `model.json`), `out/optimizer.safetensors`,
     /// `out/state.json` and, when the checkpoint carries LPIPS weights, `out/lpips.safetensors`
-    /// (checked by building the LPIPS network from them first).
+    /// (checked by building the LPIPS network from them first), then `COMMIT.json` listing
+    /// them with their CRC-32, so the directory is a committed checkpoint that a job's
+    /// `init_weights:` downloads and verifies like any other.
     pub fn write(&self, out: &Path, device: &Device) -> Result<(), ImportError> {
         let model = self.model(device)?;
         if !self.lpips.is_empty() {
@@ -469,8 +473,42 @@ impl ImportedCheckpoint {
             path: path.clone(),
             reason: e.to_string(),
         })?;
-        std::fs::write(&path, json).map_err(|source| ImportError::Io { path, source })
+        std::fs::write(&path, json).map_err(|source| ImportError::Io { path, source })?;
+        let config = checkpoint::config_path(&out.join(MODEL_FILE));
+        let mut names = vec![MODEL_FILE.to_string(), "optimizer.safetensors".to_string()];
+        names.extend(config.file_name().map(|n| n.to_string_lossy().into_owned()));
+        names.push("state.json".to_string());
+        if !self.lpips.is_empty() {
+            names.push(LPIPS_FILE.to_string());
+        }
+        write_commit_manifest(out, &names, self.step)
     }
+}
+
+/// Writes `dir/COMMIT.json` for the files `names` of `dir` (sizes and CRC-32), as a stage-1
+/// commit at `step`.
+fn write_commit_manifest(dir: &Path, names: &[String], step: u64) -> Result<(), ImportError> {
+    let mut files = Vec::with_capacity(names.len());
+    for name in names {
+        let path = dir.join(name);
+        let bytes = std::fs::read(&path).map_err(|source| ImportError::Io { path, source })?;
+        files.push(CommitFile {
+            name: name.clone(),
+            bytes: bytes.len() as u64,
+            crc32: Some(crc32fast::hash(&bytes)),
+        });
+    }
+    let manifest = CommitManifest {
+        phase: Phase::Stage1,
+        step,
+        files,
+    };
+    let path = dir.join(MANIFEST_NAME);
+    let json = serde_json::to_vec_pretty(&manifest).map_err(|e| ImportError::Write {
+        path: path.clone(),
+        reason: e.to_string(),
+    })?;
+    std::fs::write(&path, json).map_err(|source| ImportError::Io { path, source })
 }
 
 #[cfg(test)]

@@ -5,20 +5,24 @@
 //! into one segment per rank; `n - 1` reduce-scatter steps followed by `n - 1` all-gather steps
 //! move `2 (n - 1) / n` of the buffer per rank, which is bandwidth-optimal. Segments travel as
 //! chunks, and a chunk is forwarded as soon as it has been reduced, so the steps overlap
-//! (pipelining) instead of waiting for whole segments.
+//! (pipelining) instead of waiting for whole segments. Every generation's streams carry
+//! secrets the coordinator hands out with the assignment, so a rank accepts chunks only from
+//! its left neighbour of that generation ([`service`]).
 
-use std::collections::HashMap;
-use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
 use bytes::Bytes;
+use proto::v1::Chunk;
 use proto::v1::collective_client::CollectiveClient;
-use proto::v1::collective_server::Collective;
-use proto::v1::{Chunk, PushAck};
 use tokio::sync::{mpsc, watch};
 use tokio_stream::wrappers::UnboundedReceiverStream;
-use tonic::{Request, Response, Status, Streaming};
-use tracing::Instrument;
+
+mod service;
+
+use service::Inbound;
+pub use service::{
+    CollectiveService, INBOX_CHUNKS, Mailbox, RING_SECRET_KEY, RingKeys, spawn_server,
+};
 
 /// Values per chunk (1 MiB of `f32`): big enough to amortise per-message costs, small enough to
 /// pipeline.
@@ -115,135 +119,6 @@ impl PeerTls {
     }
 }
 
-type Inbound = Result<Chunk, String>;
-
-/// Inboxes of incoming chunks, one per generation, created by whichever side comes first (a
-/// left neighbour may start streaming before this rank has set up its ring).
-#[derive(Default)]
-pub struct Mailbox {
-    inboxes: Mutex<HashMap<u64, Inbox>>,
-}
-
-struct Inbox {
-    sender: mpsc::UnboundedSender<Inbound>,
-    receiver: Option<mpsc::UnboundedReceiver<Inbound>>,
-}
-
-impl Mailbox {
-    fn sender(&self, generation: u64) -> mpsc::UnboundedSender<Inbound> {
-        let mut inboxes = self.inboxes.lock().unwrap_or_else(|p| p.into_inner());
-        inboxes
-            .entry(generation)
-            .or_insert_with(|| {
-                let (sender, receiver) = mpsc::unbounded_channel();
-                Inbox {
-                    sender,
-                    receiver: Some(receiver),
-                }
-            })
-            .sender
-            .clone()
-    }
-
-    /// Takes the receiving end of `generation`'s inbox, dropping older generations' inboxes.
-    fn take(&self, generation: u64) -> Option<mpsc::UnboundedReceiver<Inbound>> {
-        self.sender(generation);
-        let mut inboxes = self.inboxes.lock().unwrap_or_else(|p| p.into_inner());
-        inboxes.retain(|&g, _| g >= generation);
-        inboxes.get_mut(&generation).and_then(|i| i.receiver.take())
-    }
-}
-
-/// The Collective service: files incoming chunks into the mailbox.
-#[derive(Clone, Default)]
-pub struct CollectiveService {
-    mailbox: Arc<Mailbox>,
-}
-
-impl CollectiveService {
-    /// The mailbox rings read from.
-    pub fn mailbox(&self) -> Arc<Mailbox> {
-        self.mailbox.clone()
-    }
-}
-
-#[tonic::async_trait]
-impl Collective for CollectiveService {
-    async fn push(&self, request: Request<Streaming<Chunk>>) -> Result<Response<PushAck>, Status> {
-        let span = tracing::debug_span!("rpc_collective_push", peer = ?request.remote_addr());
-        self.receive_stream(request.into_inner())
-            .instrument(span)
-            .await
-    }
-}
-
-impl CollectiveService {
-    async fn receive_stream(
-        &self,
-        mut stream: Streaming<Chunk>,
-    ) -> Result<Response<PushAck>, Status> {
-        let mut chunks = 0u64;
-        let mut generation = None;
-        loop {
-            match stream.message().await {
-                Ok(Some(chunk)) => {
-                    let sender = self.mailbox.sender(chunk.generation);
-                    generation = Some(chunk.generation);
-                    chunks += 1;
-                    if sender.send(Ok(chunk)).is_err() {
-                        return Err(Status::cancelled("this rank left the generation"));
-                    }
-                }
-                Ok(None) => return Ok(Response::new(PushAck { chunks })),
-                Err(status) => {
-                    if let Some(generation) = generation {
-                        let _ = self
-                            .mailbox
-                            .sender(generation)
-                            .send(Err(status.message().to_string()));
-                    }
-                    return Err(status);
-                }
-            }
-        }
-    }
-}
-
-/// Serves `service` on `listener` behind the job-token check (and TLS when `link` has it),
-/// with flow-control windows sized for megabyte chunks, and `grpc.health.v1` beside it
-/// without the check. Runs until the process ends.
-pub fn spawn_server(
-    listener: tokio::net::TcpListener,
-    service: CollectiveService,
-    link: &Link,
-) -> Result<(), CollectiveError> {
-    let server = tonic::service::interceptor::InterceptedService::new(
-        proto::v1::collective_server::CollectiveServer::new(service)
-            .max_decoding_message_size(proto::MAX_MESSAGE_BYTES),
-        proto::RequireToken::new(&link.token),
-    );
-    let mut builder = tonic::transport::Server::builder();
-    if let Some(tls) = &link.tls {
-        builder = builder
-            .tls_config(tls.server.clone())
-            .map_err(|e| CollectiveError::Tls(e.to_string()))?;
-    }
-    tokio::spawn(async move {
-        // Beside the token-checked service, not behind it: probes carry no token.
-        let health = crate::health::collective_health().await;
-        builder
-            .initial_stream_window_size(Some(16 * 1024 * 1024))
-            .initial_connection_window_size(Some(32 * 1024 * 1024))
-            .max_frame_size(Some(1024 * 1024))
-            .tcp_nodelay(true)
-            .add_service(server)
-            .add_service(health)
-            .serve_with_incoming(tokio_stream::wrappers::TcpListenerStream::new(listener))
-            .await
-    });
-    Ok(())
-}
-
 /// Figures of one all-reduce.
 #[derive(Debug, Clone, Copy, Default)]
 pub struct ReduceStats {
@@ -260,20 +135,22 @@ pub struct Ring {
     generation: u64,
     operation: u64,
     outbound: Option<mpsc::UnboundedSender<Chunk>>,
-    inbox: Option<mpsc::UnboundedReceiver<Inbound>>,
+    inbox: Option<mpsc::Receiver<Inbound>>,
     cancel: watch::Receiver<bool>,
     timeout: Duration,
     chunk_values: usize,
 }
 
 impl Ring {
-    /// Joins the ring of `generation`: opens the stream to the right neighbour and takes this
-    /// rank's inbox. `cancel` turning true aborts any all-reduce in progress.
+    /// Joins the ring of `generation`: opens the stream to the right neighbour (presenting
+    /// `keys.own`) and takes this rank's inbox, which admits only the stream presenting
+    /// `keys.left`. `cancel` turning true aborts any all-reduce in progress.
     pub async fn connect(
         mailbox: &Mailbox,
         rank: usize,
         peers: &[String],
         generation: u64,
+        keys: &RingKeys,
         link: &Link,
         cancel: watch::Receiver<bool>,
     ) -> Result<Self, CollectiveError> {
@@ -293,6 +170,8 @@ impl Ring {
         if world == 1 {
             return Ok(ring);
         }
+        // Joined first, so the left neighbour's stream is admitted while this rank dials.
+        ring.inbox = Some(mailbox.join(generation, &keys.left));
         let right = (rank + 1) % world;
         let address = &peers[right];
         let failed = |reason: String| CollectiveError::Connect {
@@ -324,14 +203,17 @@ impl Ring {
         let attach = proto::AttachToken::new(&link.token).map_err(|e| failed(e.to_string()))?;
         let mut client = CollectiveClient::with_interceptor(channel, attach)
             .max_encoding_message_size(proto::MAX_MESSAGE_BYTES);
+        let secret = tonic::metadata::MetadataValue::try_from(keys.own.as_str())
+            .map_err(|e| failed(format!("ring secret: {e}")))?;
         let (sender, receiver) = mpsc::unbounded_channel();
+        let mut request = tonic::Request::new(UnboundedReceiverStream::new(receiver));
+        request.metadata_mut().insert(RING_SECRET_KEY, secret);
         tokio::spawn(async move {
-            if let Err(status) = client.push(UnboundedReceiverStream::new(receiver)).await {
+            if let Err(status) = client.push(request).await {
                 tracing::warn!(peer = right, error = %status.message(), "collective stream ended");
             }
         });
         ring.outbound = Some(sender);
-        ring.inbox = mailbox.take(generation);
         Ok(ring)
     }
 
@@ -487,6 +369,13 @@ impl Ring {
             })
         };
         let expected_bytes = (end - begin) * 4;
+        let left = (self.rank + self.world - 1) % self.world;
+        if chunk.sender as usize != left {
+            return bad(format!(
+                "a chunk from rank {} in the stream of the left neighbour, rank {left}",
+                chunk.sender
+            ));
+        }
         if chunk.generation != self.generation || chunk.operation != self.operation {
             return bad(format!(
                 "generation {} operation {}, expected generation {} operation {}",

@@ -1,0 +1,111 @@
+//! Planning a job over a stored dataset: a split file named in the cluster YAML replaces the
+//! layout's train/test rule, and a split file that cannot be read stops the plan naming the
+//! YAML key and the file.
+
+use coordinator::config::ClusterConfig;
+use coordinator::plan::{Plan, PlanError};
+use data::DatasetKind;
+use data::cache::load_or_index;
+use data::scenes::SceneConfig;
+use data::store::DataRoot;
+use data::synthetic::SyntheticDataset;
+
+fn runtime() -> tokio::runtime::Runtime {
+    tokio::runtime::Builder::new_current_thread()
+        .enable_all()
+        .build()
+        .unwrap()
+}
+
+/// A cluster YAML over the RE10K dataset at `uri`, with `extra` added to its dataset entry.
+fn cluster_yaml(uri: &str, extra: &str) -> String {
+    format!(
+        "job: split-demo
+auth:
+  token: abc
+model:
+  preset: tiny
+  image_size: 32
+data:
+  datasets:
+    - kind: re10k
+      uri: {uri}
+{extra}stage1:
+  steps: 2
+  global_batch: 2
+  micro_batch: 1
+  lpips_weight: 0
+stage2:
+  steps: 2
+  global_batch: 2
+  micro_batch: 1
+  lpips_weight: 0
+checkpoint:
+  uri: {uri}-checkpoints
+  every: 1
+"
+    )
+}
+
+/// The `data:` line of the plan's description.
+fn train_sequences(plan: &Plan) -> String {
+    plan.describe()
+        .lines()
+        .find(|line| line.starts_with("data: re10k"))
+        .expect("the plan describes its dataset")
+        .to_string()
+}
+
+#[test]
+fn a_split_file_chooses_the_training_sequences() {
+    let dir = tempfile::tempdir().unwrap();
+    let rt = runtime();
+    let scene = SceneConfig {
+        image_size: 32,
+        ..SceneConfig::default()
+    };
+    let uri = dir.path().join("re10k").display().to_string();
+    let root = DataRoot::create(&uri).unwrap();
+    let dataset = SyntheticDataset::generate(2, 2, 2, 10, &scene);
+    rt.block_on(dataset.write_re10k(&root, data::Split::Train, scene.fov_degrees))
+        .unwrap();
+    let (indexed, _) = rt
+        .block_on(load_or_index(&root, DatasetKind::Re10k))
+        .unwrap();
+    let ids: Vec<String> = indexed
+        .manifest
+        .sequences
+        .iter()
+        .map(|s| s.id.clone())
+        .collect();
+    assert_eq!(ids.len(), 4);
+
+    let plan = |extra: &str| {
+        let config = ClusterConfig::from_yaml(&cluster_yaml(&uri, extra), "cluster.yaml").unwrap();
+        // Boxed: a plan error carries whole store errors.
+        rt.block_on(Plan::build(config)).map_err(Box::new)
+    };
+    let by_rule = plan("").unwrap();
+    assert!(train_sequences(&by_rule).contains(": 4 train sequences"));
+
+    // The paper's files key sequences by id; the values do not matter.
+    let keys = format!(r#"{{"{}": 0, "{}": 0}}"#, ids[0], ids[3]);
+    std::fs::write(dir.path().join("re10k/train_split.json"), keys).unwrap();
+    let relative = plan("      split_file: train_split.json\n").unwrap();
+    assert!(
+        train_sequences(&relative).contains(": 2 train sequences"),
+        "{}",
+        relative.describe()
+    );
+    let absolute = dir.path().join("re10k/train_split.json");
+    let absolute = plan(&format!("      split_file: {}\n", absolute.display())).unwrap();
+    assert_eq!(train_sequences(&absolute), train_sequences(&relative));
+
+    let missing = plan("      split_file: nowhere.json\n").unwrap_err();
+    assert!(matches!(*missing, PlanError::Split { index: 0, .. }));
+    let chain = format!("{:#}", anyhow::Error::from(*missing));
+    assert!(
+        chain.contains("data.datasets[0].split_file") && chain.contains("nowhere.json"),
+        "{chain}"
+    );
+}

@@ -1,0 +1,242 @@
+//! The receiving side of the ring: the Collective service and the mailbox it files chunks
+//! into.
+//!
+//! A rank accepts one stream per generation, and only from its left neighbour: the stream must
+//! present, as `x-xfactor-ring` metadata, the secret the coordinator gave that neighbour for
+//! this generation. A stream that arrives before this rank has joined the generation waits
+//! (unread, so HTTP/2 flow control holds its sender) until the rank joins, a newer generation
+//! makes it stale, or [`ADMISSION_WAIT`] passes. The inbox is bounded, so a fast sender is
+//! slowed down rather than buffered without limit.
+
+use std::sync::{Arc, Mutex};
+use std::time::Duration;
+
+use proto::v1::collective_server::Collective;
+use proto::v1::{Chunk, PushAck};
+use tokio::sync::{Notify, mpsc};
+use tonic::{Request, Response, Status, Streaming};
+use tracing::Instrument;
+
+use super::Link;
+
+/// The metadata key carrying the sender's ring secret.
+pub const RING_SECRET_KEY: &str = "x-xfactor-ring";
+
+/// Chunks held for the ring before the sender is slowed down (at most 16 MiB of 1 MiB chunks).
+pub const INBOX_CHUNKS: usize = 16;
+
+/// Longest a stream waits for this rank to join its generation.
+const ADMISSION_WAIT: Duration = Duration::from_secs(60);
+
+/// A chunk, or why the left neighbour's stream broke.
+pub(super) type Inbound = Result<Chunk, String>;
+
+/// This rank's secret for its outgoing stream and the one its left neighbour must present.
+#[derive(Debug, Clone, Default, PartialEq, Eq)]
+pub struct RingKeys {
+    /// Sent with this rank's stream to its right neighbour.
+    pub own: String,
+    /// Demanded of the stream from the left neighbour.
+    pub left: String,
+}
+
+/// The generation this rank's ring is in, and where its left neighbour's chunks go.
+struct Joined {
+    generation: u64,
+    left_secret: String,
+    inbox: mpsc::Sender<Inbound>,
+}
+
+/// Where incoming chunks wait for the ring of the generation this rank is in.
+#[derive(Default)]
+pub struct Mailbox {
+    joined: Mutex<Option<Joined>>,
+    changed: Notify,
+}
+
+/// Why a stream was not admitted.
+enum Refused {
+    /// Its generation is older than the one this rank is in.
+    Stale(u64),
+    /// It does not carry the left neighbour's secret.
+    WrongSecret,
+}
+
+impl Mailbox {
+    /// Joins `generation`, whose left neighbour must present `left_secret`; returns the inbox
+    /// its chunks arrive in. Streams of older generations are cut off.
+    pub(super) fn join(&self, generation: u64, left_secret: &str) -> mpsc::Receiver<Inbound> {
+        let (inbox, receiver) = mpsc::channel(INBOX_CHUNKS);
+        *self.lock() = Some(Joined {
+            generation,
+            left_secret: left_secret.to_string(),
+            inbox,
+        });
+        self.changed.notify_waiters();
+        receiver
+    }
+
+    /// The inbox for a stream of `generation` presenting `secret`, waiting for this rank to
+    /// join that generation.
+    async fn admit(&self, generation: u64, secret: &str) -> Result<mpsc::Sender<Inbound>, Status> {
+        let deadline = tokio::time::Instant::now() + ADMISSION_WAIT;
+        loop {
+            let changed = self.changed.notified();
+            match self.try_admit(generation, secret) {
+                Ok(Some(inbox)) => return Ok(inbox),
+                Ok(None) => {}
+                Err(Refused::Stale(current)) => {
+                    return Err(Status::failed_precondition(format!(
+                        "generation {generation} is over: this rank is in generation {current}"
+                    )));
+                }
+                Err(Refused::WrongSecret) => {
+                    tracing::warn!(
+                        generation,
+                        "a stream without the left neighbour's secret was refused"
+                    );
+                    return Err(Status::permission_denied(format!(
+                        "only this rank's left neighbour of generation {generation} may stream to it"
+                    )));
+                }
+            }
+            if tokio::time::timeout_at(deadline, changed).await.is_err() {
+                return Err(Status::deadline_exceeded(format!(
+                    "this rank did not join generation {generation} within {} s",
+                    ADMISSION_WAIT.as_secs()
+                )));
+            }
+        }
+    }
+
+    /// `Ok(None)`: this rank has not joined `generation` yet.
+    fn try_admit(
+        &self,
+        generation: u64,
+        secret: &str,
+    ) -> Result<Option<mpsc::Sender<Inbound>>, Refused> {
+        match self.lock().as_ref() {
+            Some(joined) if joined.generation > generation => {
+                Err(Refused::Stale(joined.generation))
+            }
+            Some(joined) if joined.generation == generation => {
+                if proto::constant_time_equal(secret.as_bytes(), joined.left_secret.as_bytes()) {
+                    Ok(Some(joined.inbox.clone()))
+                } else {
+                    Err(Refused::WrongSecret)
+                }
+            }
+            _ => Ok(None),
+        }
+    }
+
+    fn lock(&self) -> std::sync::MutexGuard<'_, Option<Joined>> {
+        self.joined.lock().unwrap_or_else(|p| p.into_inner())
+    }
+}
+
+/// The Collective service: admits the left neighbour's stream and files its chunks into the
+/// mailbox.
+#[derive(Clone, Default)]
+pub struct CollectiveService {
+    mailbox: Arc<Mailbox>,
+}
+
+impl CollectiveService {
+    /// The mailbox rings read from.
+    pub fn mailbox(&self) -> Arc<Mailbox> {
+        self.mailbox.clone()
+    }
+}
+
+#[tonic::async_trait]
+impl Collective for CollectiveService {
+    async fn push(&self, request: Request<Streaming<Chunk>>) -> Result<Response<PushAck>, Status> {
+        let span = tracing::debug_span!("rpc_collective_push", peer = ?request.remote_addr());
+        let secret = request
+            .metadata()
+            .get(RING_SECRET_KEY)
+            .and_then(|value| value.to_str().ok())
+            .unwrap_or_default()
+            .to_string();
+        self.receive_stream(request.into_inner(), secret)
+            .instrument(span)
+            .await
+    }
+}
+
+impl CollectiveService {
+    async fn receive_stream(
+        &self,
+        mut stream: Streaming<Chunk>,
+        secret: String,
+    ) -> Result<Response<PushAck>, Status> {
+        let Some(first) = stream.message().await? else {
+            return Ok(Response::new(PushAck { chunks: 0 }));
+        };
+        let generation = first.generation;
+        let inbox = self.mailbox.admit(generation, &secret).await?;
+        let mut next = Some(first);
+        let mut chunks = 0u64;
+        loop {
+            let chunk = match next.take() {
+                Some(chunk) => chunk,
+                None => match stream.message().await {
+                    Ok(Some(chunk)) => chunk,
+                    Ok(None) => return Ok(Response::new(PushAck { chunks })),
+                    Err(status) => {
+                        let _ = inbox.send(Err(status.message().to_string())).await;
+                        return Err(status);
+                    }
+                },
+            };
+            if chunk.generation != generation {
+                let reason = format!(
+                    "a chunk of generation {} in the stream of generation {generation}",
+                    chunk.generation
+                );
+                let _ = inbox.send(Err(reason.clone())).await;
+                return Err(Status::invalid_argument(reason));
+            }
+            chunks += 1;
+            if inbox.send(Ok(chunk)).await.is_err() {
+                return Err(Status::cancelled("this rank left the generation"));
+            }
+        }
+    }
+}
+
+/// Serves `service` on `listener` behind the job-token check (and TLS when `link` has it),
+/// with flow-control windows sized for megabyte chunks, and `grpc.health.v1` beside it
+/// without the check. Runs until the process ends.
+pub fn spawn_server(
+    listener: tokio::net::TcpListener,
+    service: CollectiveService,
+    link: &Link,
+) -> Result<(), super::CollectiveError> {
+    let server = tonic::service::interceptor::InterceptedService::new(
+        proto::v1::collective_server::CollectiveServer::new(service)
+            .max_decoding_message_size(proto::MAX_MESSAGE_BYTES),
+        proto::RequireToken::new(&link.token),
+    );
+    let mut builder = tonic::transport::Server::builder();
+    if let Some(tls) = &link.tls {
+        builder = builder
+            .tls_config(tls.server.clone())
+            .map_err(|e| super::CollectiveError::Tls(e.to_string()))?;
+    }
+    tokio::spawn(async move {
+        // Beside the token-checked service, not behind it: probes carry no token.
+        let health = crate::health::collective_health().await;
+        builder
+            .initial_stream_window_size(Some(16 * 1024 * 1024))
+            .initial_connection_window_size(Some(32 * 1024 * 1024))
+            .max_frame_size(Some(1024 * 1024))
+            .tcp_nodelay(true)
+            .add_service(server)
+            .add_service(health)
+            .serve_with_incoming(tokio_stream::wrappers::TcpListenerStream::new(listener))
+            .await
+    });
+    Ok(())
+}
