@@ -3,6 +3,7 @@
 //! file is written last; the coordinator verifies it before accepting the commit.
 
 use std::path::Path;
+use std::time::Duration;
 
 use anyhow::{Context, anyhow, bail};
 use data::store::DataRoot;
@@ -69,6 +70,9 @@ pub async fn download(location: &str, dir: &Path) -> anyhow::Result<CommitManife
     Ok(manifest)
 }
 
+/// Tries of a checkpoint upload before the generation fails (pauses of 1 s, 2 s between).
+pub const UPLOAD_ATTEMPTS: u32 = 3;
+
 /// What one commit uploads and where.
 pub struct CommitRequest<'a> {
     /// The files to upload.
@@ -83,8 +87,10 @@ pub struct CommitRequest<'a> {
     pub generation: u64,
 }
 
-/// Uploads `request.dir` with its manifest last, then asks the coordinator to commit it; fails
-/// when either the upload or the commit fails or the coordinator refuses it.
+/// Uploads `request.dir` with its manifest last (retried with back-off, [`UPLOAD_ATTEMPTS`] in
+/// all), then asks the coordinator to commit it; fails when the upload keeps failing, the
+/// commit fails or the coordinator refuses it. The caller's generation then fails, which it
+/// reports, so the group re-forms from the last commit instead of waiting for this one.
 pub fn commit(
     runtime: &Runtime,
     client: &mut Client,
@@ -93,7 +99,20 @@ pub fn commit(
 ) -> anyhow::Result<()> {
     let location = request.location;
     let started = std::time::Instant::now();
-    runtime.block_on(upload(request.dir, &location, request.phase, request.step))?;
+    let mut attempt = 1;
+    while let Err(error) =
+        runtime.block_on(upload(request.dir, &location, request.phase, request.step))
+    {
+        if attempt >= UPLOAD_ATTEMPTS {
+            return Err(error.context(format!(
+                "uploading the checkpoint to {location} failed {attempt} times"
+            )));
+        }
+        let pause = Duration::from_secs(1 << (attempt - 1));
+        tracing::warn!(%location, attempt, error = %format!("{error:#}"), "checkpoint upload failed; retrying in {} s", pause.as_secs());
+        std::thread::sleep(pause);
+        attempt += 1;
+    }
     let upload_s = started.elapsed().as_secs_f64();
     progress
         .metrics

@@ -10,11 +10,12 @@ use std::sync::atomic::Ordering;
 use std::time::Duration;
 
 use anyhow::{Context, bail};
+use proto::v1::GenerationFailure;
 use proto::v1::assignment::Work;
 use settings::{DeviceChoice, XFactorConfig};
 use tokio_util::sync::CancellationToken;
 
-use crate::collective::{CollectiveService, Link, Mailbox, PeerTls, spawn_server};
+use crate::collective::{CollectiveError, CollectiveService, Link, Mailbox, PeerTls, spawn_server};
 use crate::session::{Progress, await_assignment, connect, heartbeats, leave, register};
 use crate::{evaluate, metrics, shutdown, training};
 
@@ -143,16 +144,18 @@ pub fn run(options: WorkerOptions) -> anyhow::Result<()> {
     runtime.spawn(heartbeats(client.clone(), progress.clone(), interval));
     let mut after = 0;
     let mut failures = 0;
+    let mut failure: Option<GenerationFailure> = None;
     loop {
         let waited = runtime.block_on(async {
             tokio::select! {
-                assignment = await_assignment(&mut client, &progress, after) => Some(assignment),
+                assignment = await_assignment(&mut client, &progress, after, failure.as_ref()) => Some(assignment),
                 () = shutdown.cancelled() => None,
             }
         });
         let Some(waited) = waited else {
             return leave(&runtime, &mut client, &progress);
         };
+        failure = None;
         let assignment = match waited {
             Ok(assignment) => assignment,
             Err(status) if status.code() == tonic::Code::NotFound => {
@@ -206,11 +209,31 @@ pub fn run(options: WorkerOptions) -> anyhow::Result<()> {
                 failures += 1;
                 progress.metrics.add(&metrics::RESTARTS, &[], 1.0);
                 tracing::warn!(error = %format!("{error:#}"), "generation abandoned");
+                failure = Some(GenerationFailure {
+                    reason: format!("{error:#}"),
+                    suspect_rank: suspect_rank(&error),
+                });
                 if failures >= MAX_CONSECUTIVE_FAILURES {
                     bail!("{failures} generations in a row failed; last error: {error:#}");
                 }
             }
         }
+    }
+}
+
+/// The peer rank a failed generation's error points at: the one that timed out, whose stream
+/// broke or that sent a bad chunk. `None`: the worker's own failure (an upload, its data).
+fn suspect_rank(error: &anyhow::Error) -> Option<u32> {
+    let collective = error
+        .chain()
+        .find_map(|cause| cause.downcast_ref::<CollectiveError>())?;
+    match collective {
+        CollectiveError::Connect { rank, .. }
+        | CollectiveError::PeerGone { rank }
+        | CollectiveError::InboundBroken { rank, .. }
+        | CollectiveError::Timeout { rank, .. } => Some(*rank as u32),
+        CollectiveError::BadChunk { sender, .. } => Some(*sender),
+        CollectiveError::Cancelled | CollectiveError::Aborted(_) | CollectiveError::Tls(_) => None,
     }
 }
 

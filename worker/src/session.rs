@@ -9,7 +9,8 @@ use anyhow::{Context, anyhow, bail};
 use proto::convert::device_to_wire;
 use proto::v1::coordinator_client::CoordinatorClient;
 use proto::v1::{
-    Activity, Assignment, AwaitAssignmentRequest, HeartbeatRequest, LeaveRequest, RegisterRequest,
+    Activity, Assignment, AwaitAssignmentRequest, GenerationFailure, HeartbeatRequest,
+    LeaveRequest, RegisterRequest,
 };
 use settings::XFactorConfig;
 use telemetry::Registry;
@@ -177,12 +178,14 @@ pub async fn await_assignment(
     client: &mut Client,
     progress: &Progress,
     after: u64,
+    failure: Option<&GenerationFailure>,
 ) -> Result<Assignment, tonic::Status> {
     loop {
         let request = AwaitAssignmentRequest {
             worker_id: progress.worker_id(),
             after_generation: after,
             session: progress.session(),
+            failure: failure.cloned(),
         };
         match client.await_assignment(request).await {
             Ok(reply) => return Ok(reply.into_inner()),

@@ -56,6 +56,43 @@ impl JobState {
         !stalled.is_empty()
     }
 
+    /// A member says its part of `generation` failed, pointing at the rank the evidence names
+    /// (`None`: itself). While that generation runs, it ends now, the suspect is blamed and
+    /// sits out a back-off, and the group re-forms from the last commit; a report about an
+    /// older generation changes nothing. Returns whether the generation ended.
+    pub fn generation_failed(
+        &mut self,
+        worker: u64,
+        generation: u64,
+        reason: &str,
+        suspect_rank: Option<u32>,
+        now: Instant,
+    ) -> bool {
+        let Some(group) = self.group.as_ref().filter(|g| g.generation == generation) else {
+            return false;
+        };
+        let Some(rank) = group.members.iter().position(|&m| m == worker) else {
+            return false;
+        };
+        let suspect_rank = suspect_rank.map_or(rank, |r| r as usize);
+        let Some(&suspect) = group.members.get(suspect_rank) else {
+            return false;
+        };
+        tracing::warn!(
+            generation,
+            reporter = worker,
+            suspect,
+            suspect_rank,
+            %reason,
+            "generation failed; the suspect sits out and the group re-forms from the last commit"
+        );
+        self.blame(suspect, now);
+        self.group = None;
+        self.report.restarts += 1;
+        self.lost_at = Some(now);
+        true
+    }
+
     /// Marks `worker` lost and excludes its address from groups for a back-off that doubles
     /// with each failure it is blamed for.
     fn blame(&mut self, worker: u64, now: Instant) {

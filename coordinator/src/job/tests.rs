@@ -422,3 +422,76 @@ fn init_weights_start_stage1_and_only_until_its_first_commit() {
     let stage2 = train(&next[0]);
     assert_eq!(stage2.init_weights_from, "mem://stage1/4");
 }
+
+#[test]
+fn a_failed_final_commit_ends_the_generation_and_the_stage_resumes_from_the_last_commit() {
+    let mut run = Run::new(false, None);
+    let generation = run.assign(0)[0].as_ref().unwrap().generation;
+    let (w0, w1) = (run.workers[0], run.workers[1]);
+    assert!(!run.commit(w0, Phase::Stage1, 2, generation));
+    // Both ranks finish the stage's last step; rank 0's upload of the final commit fails.
+    for worker in [w0, w1] {
+        assert!(run.step(worker, Phase::Stage1, 3, generation));
+    }
+    assert!(
+        run.state
+            .request_assignment(w1, generation, run.now)
+            .unwrap()
+            .is_none()
+    );
+    assert!(
+        !run.state.tick(run.now),
+        "a finished member waiting is no trouble"
+    );
+    assert!(
+        !run.state
+            .generation_failed(w0, generation - 1, "old", None, run.now),
+        "a report about an older generation changes nothing"
+    );
+    assert!(run.state.generation_failed(
+        w0,
+        generation,
+        "uploading the checkpoint failed 3 times",
+        None,
+        run.now
+    ));
+    let report = run.state.report();
+    assert_eq!(report.restarts, 1);
+    let blamed = &report.exclusions;
+    assert_eq!((blamed.len(), blamed[0].worker.as_str()), (1, "w0"));
+    // The survivor re-forms from the last good commit once the grace period is over.
+    run.workers = vec![w1];
+    run.now += Duration::from_secs(2);
+    let again = run.assign(generation);
+    let resumed = train(&again[0]);
+    assert_eq!(resumed.resume_from, "mem://stage1/2");
+    assert_eq!(resumed.world_size, 1);
+}
+
+#[test]
+fn a_timeout_blames_the_rank_the_evidence_names() {
+    let mut run = Run::new(false, None);
+    let generation = run.assign(0)[0].as_ref().unwrap().generation;
+    let (w0, w1) = (run.workers[0], run.workers[1]);
+    // Rank 0 waited for rank 1's chunks past the collective timeout.
+    assert!(run.state.generation_failed(
+        w0,
+        generation,
+        "no chunk from rank 1 for 60 s",
+        Some(1),
+        run.now
+    ));
+    let report = run.state.report();
+    let blamed = &report.exclusions;
+    assert_eq!((blamed.len(), blamed[0].worker.as_str()), (1, "w1"));
+    assert_eq!(
+        run.state.request_assignment(w1, generation, run.now),
+        Err(Refusal::LostWorker(w1)),
+        "the suspect registers again and sits out its back-off"
+    );
+    assert!(
+        run.state
+            .request_assignment(w0, generation, run.now)
+            .is_ok()
+    );
+}

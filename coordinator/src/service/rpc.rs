@@ -55,6 +55,18 @@ impl Coordinator for CoordinatorService {
         let request = request.into_inner();
         let span = tracing::debug_span!("rpc_await_assignment", worker = request.worker_id);
         self.sessions.check(request.worker_id, &request.session)?;
+        if let Some(failure) = &request.failure {
+            let ended = self.state.lock().await.generation_failed(
+                request.worker_id,
+                request.after_generation,
+                &failure.reason,
+                failure.suspect_rank,
+                Instant::now(),
+            );
+            if ended {
+                self.changed.notify_waiters();
+            }
+        }
         self.assign(request).instrument(span).await
     }
 
