@@ -61,21 +61,9 @@ pub fn pose_latents(
     frames: &[Image],
     device: &Device,
 ) -> Result<Vec<Latent>, EvalError> {
-    let mut latents = Vec::with_capacity(frames.len());
-    for chunk in frames.chunks(CHUNK) {
-        let references = upload(&vec![reference; chunk.len()], device)?;
-        let targets = upload(&chunk.iter().collect::<Vec<_>>(), device)?;
-        let pairs = Tensor::stack(vec![references, targets], 1);
-        let poses = model.pose_enc.forward(pairs);
-        let [b, _, cp] = poses.dims();
-        let values = poses
-            .narrow(1, 1, 1)
-            .reshape([b * cp])
-            .try_into_vec_as::<f32>()
-            .map_err(|e| EvalError::Tensor(format!("{e:?}")))?;
-        latents.extend(values.chunks_exact(cp).map(<[f32]>::to_vec));
-    }
-    Ok(latents)
+    per_pair(model, reference, frames, device, |model, pairs| {
+        model.pose_enc.forward(pairs)
+    })
 }
 
 /// PoseEnc's probe input `concat(z0, z)` (`2C` wide) for each pair `(reference, frame)`,
@@ -86,21 +74,34 @@ pub fn probe_features(
     frames: &[Image],
     device: &Device,
 ) -> Result<Vec<Latent>, EvalError> {
-    let mut features = Vec::with_capacity(frames.len());
+    per_pair(model, reference, frames, device, |model, pairs| {
+        model.pose_enc.probe_features(pairs)
+    })
+}
+
+/// `encode` of the pairs `(reference, frame)` (`[B, 2, H, W, 3]` to `[B, 2, width]`), in
+/// chunks; the second slot of each pair, the frame's, as one vector per frame.
+fn per_pair(
+    model: &XFactor,
+    reference: &Image,
+    frames: &[Image],
+    device: &Device,
+    encode: impl Fn(&XFactor, Tensor<5>) -> Tensor<3>,
+) -> Result<Vec<Latent>, EvalError> {
+    let mut out = Vec::with_capacity(frames.len());
     for chunk in frames.chunks(CHUNK) {
         let references = upload(&vec![reference; chunk.len()], device)?;
         let targets = upload(&chunk.iter().collect::<Vec<_>>(), device)?;
-        let pairs = Tensor::stack(vec![references, targets], 1);
-        let probe = model.pose_enc.probe_features(pairs);
-        let [b, _, width] = probe.dims();
-        let values = probe
+        let encoded = encode(model, Tensor::stack(vec![references, targets], 1));
+        let [b, _, width] = encoded.dims();
+        let values = encoded
             .narrow(1, 1, 1)
             .reshape([b * width])
             .try_into_vec_as::<f32>()
             .map_err(|e| EvalError::Tensor(format!("{e:?}")))?;
-        features.extend(values.chunks_exact(width).map(<[f32]>::to_vec));
+        out.extend(values.chunks_exact(width).map(<[f32]>::to_vec));
     }
-    Ok(features)
+    Ok(out)
 }
 
 /// Renders one image per target latent from the context views, whose own latents are given
