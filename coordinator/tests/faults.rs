@@ -1,12 +1,15 @@
 //! Faults injected into real coordinator and worker processes on loopback, each with its
 //! expected end state: frames deleted after indexing, a coordinator stopped while its workers
-//! long-poll.
+//! long-poll, a SIGSTOPped worker, a SIGKILLed and restarted coordinator, and a second
+//! coordinator on the same checkpoint URI. Each prints `fault=... key=value` figures.
 
 mod common;
 
 use std::time::{Duration, Instant};
 
-use common::{Running, signal, small_job, wait_exit, wait_for_first_commit};
+use common::{
+    Running, commits, last_committed, signal, small_job, wait_exit, wait_for_first_commit,
+};
 use coordinator::local::{LocalJob, free_port};
 
 #[test]
@@ -71,6 +74,114 @@ fn a_coordinator_stops_within_5_s_of_sigterm_while_workers_long_poll() {
     assert!(status.success(), "{status}");
     let _ = worker.kill();
     let _ = worker.wait();
+}
+
+#[test]
+fn a_sigstopped_worker_is_dropped_and_the_job_finishes_without_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut job = small_job(dir.path(), 2);
+    job.stage1_steps = 20;
+    let running = Running::start(job);
+    wait_for_first_commit(&running);
+    signal(&running.workers[1], "STOP");
+    let stopped = Instant::now();
+    let log = dir.path().join("coordinator.log");
+    let deadline = Instant::now() + Duration::from_secs(60);
+    while !std::fs::read_to_string(&log)
+        .unwrap_or_default()
+        .contains("worker lost: no heartbeat")
+    {
+        assert!(
+            Instant::now() < deadline,
+            "the stopped worker was never dropped\n{}",
+            running.logs()
+        );
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    let dropped = stopped.elapsed().as_secs_f64();
+    // Woken again, it finds itself unknown and registers anew (or hears the job ended).
+    signal(&running.workers[1], "CONT");
+    let report = running.finish(Duration::from_secs(300));
+    println!(
+        "fault=worker_sigstop dropped_after_s={dropped:.1} finished_after_s={:.1} restarts={}",
+        stopped.elapsed().as_secs_f64(),
+        report["restarts"]
+    );
+    assert_eq!(report["outcome"], "finished", "{report:#}");
+    assert!(report["restarts"].as_u64().unwrap() >= 1, "{report:#}");
+    assert_eq!(commits(&report, 1).last().unwrap().0, 20, "{report:#}");
+}
+
+#[test]
+fn a_sigkilled_coordinator_restarts_after_its_lease_and_resumes_from_its_commit() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut job = small_job(dir.path(), 2);
+    job.stage1_steps = 20;
+    let mut running = Running::start(job);
+    wait_for_first_commit(&running);
+    let committed = last_committed(&running.job.checkpoint_dir());
+    let history = running.job.checkpoint_dir().join("history");
+    let first_segment = history.join("steps-000000.jsonl");
+    let deadline = Instant::now() + Duration::from_secs(60);
+    while !first_segment.exists() {
+        assert!(Instant::now() < deadline, "no step history\n{}", running.logs());
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    signal(&running.coordinator, "KILL");
+    let written = std::fs::read_to_string(&first_segment).unwrap().lines().count();
+    let _ = wait_exit(&mut running.coordinator, Duration::from_secs(10));
+    let killed = Instant::now();
+    running.coordinator = running.job.spawn_coordinator(&common::binaries()).unwrap();
+    let report = running.finish(Duration::from_secs(300));
+    println!(
+        "fault=coordinator_sigkill finished_after_s={:.1} generations={}",
+        killed.elapsed().as_secs_f64(),
+        report["generations"].as_array().map_or(0, Vec::len)
+    );
+    assert_eq!(report["outcome"], "finished", "{report:#}");
+    let first = &report["generations"][0];
+    assert!(
+        first["stage"] == 2 || first["resume_from"] != "",
+        "the restarted coordinator began stage 1 afresh (last commit {committed}): {report:#}"
+    );
+    // The history survived the kill: the first coordinator's segment, then the second's.
+    let kept = std::fs::read_to_string(&first_segment).unwrap().lines().count();
+    assert!(kept >= written.max(1), "{kept} of {written} history lines kept");
+    assert!(history.join("steps-000001.jsonl").exists(), "the restarted coordinator's segment");
+}
+
+#[test]
+fn a_second_coordinator_on_the_same_checkpoint_uri_is_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut job = small_job(dir.path(), 2);
+    // Long enough that the first coordinator still runs (and renews its lease) while the
+    // second one watches it.
+    job.stage1_steps = 400;
+    job.checkpoint_every = 100;
+    let running = Running::start(job);
+    wait_for_first_commit(&running);
+    let log = dir.path().join("second-coordinator.log");
+    let started = Instant::now();
+    let mut second = std::process::Command::new(common::binaries().join("xfactor-coordinator"))
+        .arg("run")
+        .arg("--config")
+        .arg(running.job.config_path())
+        .stdout(std::process::Stdio::null())
+        .stderr(std::fs::File::create(&log).unwrap())
+        .spawn()
+        .unwrap();
+    let status = wait_exit(&mut second, Duration::from_secs(30));
+    let refused_after = started.elapsed().as_secs_f64();
+    let said = std::fs::read_to_string(&log).unwrap();
+    println!("fault=second_coordinator refused_after_s={refused_after:.1}");
+    assert!(!status.success(), "the second coordinator ran\n{said}");
+    assert!(said.contains("another coordinator"), "{said}");
+    let report = running.finish(Duration::from_secs(300));
+    assert_eq!(report["outcome"], "finished", "{report:#}");
+    assert_eq!(
+        report["restarts"], 0,
+        "the first job was not disturbed: {report:#}"
+    );
 }
 
 fn walk(dir: &std::path::Path) -> Vec<std::path::PathBuf> {

@@ -19,6 +19,7 @@ mod assignments;
 mod faults;
 mod queries;
 mod records;
+mod steps;
 #[cfg(test)]
 mod tests;
 
@@ -119,11 +120,8 @@ pub struct JobState {
     report: Report,
     /// Frames skipped by each worker in each generation (its reports carry a running count).
     skipped: HashMap<(u64, u64), u64>,
-    /// Position in `report.steps` of each `(phase, step, generation)`, so a report finds its
-    /// record without scanning the history.
-    step_index: HashMap<(Phase, u64, u64), usize>,
-    /// Records of `report.steps` before this index went to the history writer.
-    history_cursor: usize,
+    /// Step records: found by index, the newest in memory, the rest handed to the history.
+    steps: steps::StepLog,
     current_step: u64,
     last_loss: f32,
 }
@@ -175,8 +173,7 @@ impl JobState {
                 evaluation: durable.evaluation.clone(),
                 ..Report::default()
             },
-            step_index: HashMap::new(),
-            history_cursor: 0,
+            steps: steps::StepLog::default(),
             skipped: HashMap::new(),
             durable,
             plan,
@@ -226,6 +223,7 @@ impl JobState {
     /// The report so far.
     pub fn report(&self) -> Report {
         let mut report = self.report.clone();
+        report.steps = self.steps.retained().to_vec();
         report.outcome = match (&self.durable.failure, self.finished()) {
             (Some(failure), _) => format!("failed: {failure}"),
             (None, true) => "finished".into(),
@@ -336,13 +334,7 @@ impl JobState {
         let loss = report.loss.unwrap_or_default();
         self.current_step = report.step + 1;
         self.count_skipped(worker, report);
-        let key = (phase, report.step, report.generation);
-        let steps = &mut self.report.steps;
-        let index = *self.step_index.entry(key).or_insert_with(|| {
-            steps.push(StepRecord::new(phase, report.step, report.generation));
-            steps.len() - 1
-        });
-        let record = &mut self.report.steps[index];
+        let record = self.steps.record(phase, report.step, report.generation);
         record.step_s = record.step_s.max(report.step_s);
         record.allreduce_s = record.allreduce_s.max(report.allreduce_s);
         if rank == 0 {

@@ -1,8 +1,6 @@
 //! What the job state tells operators and the service: status, throughput, curves, and the
 //! step records for the history file.
 
-use std::collections::BTreeMap;
-
 use proto::v1::JobStatus;
 use settings::Phase;
 use telemetry::curves::Curve;
@@ -10,23 +8,9 @@ use telemetry::curves::Curve;
 use super::{JobState, StepRecord};
 
 impl JobState {
-    /// Step records not yet handed out, oldest first: every one but the newest two, which may
-    /// still gain other ranks' reports (a rank finishes step `s + 1` only after every rank
-    /// finished `s`, in the all-reduce, but a report can be late by a step), or all of them
-    /// once the job is over (`all`).
+    /// Step records for the history writer: see [`super::steps::StepLog::take_sealed`].
     pub fn take_history(&mut self, all: bool) -> Vec<StepRecord> {
-        let steps = &self.report.steps;
-        let end = if all {
-            steps.len()
-        } else {
-            steps.len().saturating_sub(2)
-        };
-        let taken = steps
-            .get(self.history_cursor..end)
-            .map(<[StepRecord]>::to_vec)
-            .unwrap_or_default();
-        self.history_cursor = self.history_cursor.max(end);
-        taken
+        self.steps.take_sealed(all)
     }
 
     /// Progress for the `status` command.
@@ -99,16 +83,14 @@ impl JobState {
     /// The loss curve of `phase` as recorded by this coordinator: one row per step (the last
     /// run of a step that was re-run after a restart), with loss and learning rate.
     pub fn curve(&self, phase: Phase) -> Curve {
-        let mut rows: BTreeMap<u64, Vec<f64>> = BTreeMap::new();
-        for record in self.report.steps.iter().filter(|r| r.phase == phase) {
-            rows.insert(
-                record.step,
-                vec![f64::from(record.loss), record.learning_rate],
-            );
-        }
+        let rows = self
+            .steps
+            .curve(phase)
+            .into_iter()
+            .map(|(step, (loss, learning_rate))| (step, vec![f64::from(loss), learning_rate]));
         Curve {
             columns: vec!["loss".into(), "learning_rate".into()],
-            rows: rows.into_iter().collect(),
+            rows: rows.collect(),
         }
     }
 }

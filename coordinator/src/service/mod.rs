@@ -21,6 +21,7 @@ use crate::metrics;
 use crate::plan::Plan;
 
 pub mod history;
+pub mod lease;
 mod rpc;
 mod sessions;
 pub mod store;
@@ -42,6 +43,8 @@ pub struct CoordinatorService {
     sessions: Arc<sessions::Sessions>,
     /// Each generation's ring secrets, handed out with training assignments.
     ring_secrets: Arc<sessions::RingSecrets>,
+    /// This coordinator's hold on the checkpoint URI.
+    lease: Arc<lease::Lease>,
 }
 
 /// Why a job could not run.
@@ -85,6 +88,9 @@ pub enum ServeError {
         /// This job.
         expected: String,
     },
+    /// Another coordinator holds the checkpoint URI, or took it over from this one.
+    #[error("coordinator lease")]
+    Lease(#[source] lease::LeaseError),
     /// The server failed.
     #[error("gRPC server")]
     Transport(#[source] tonic::transport::Error),
@@ -111,6 +117,10 @@ impl CoordinatorService {
         let config = &plan.config;
         let checkpoints =
             DataRoot::create(&config.checkpoint.uri.0).map_err(ServeError::OpenStore)?;
+        // Held before job.json is read, so no other coordinator changes it meanwhile.
+        let lease = lease::Lease::claim(checkpoints.clone(), lease::holder_name())
+            .await
+            .map_err(ServeError::Lease)?;
         let (durable, durable_version) = store::read_durable(&checkpoints, &config.job.0)
             .await?
             .unzip();
@@ -136,6 +146,7 @@ impl CoordinatorService {
             durable_version: Arc::new(Mutex::new(durable_version)),
             sessions: Arc::default(),
             ring_secrets: Arc::default(),
+            lease: Arc::new(lease),
         })
     }
 
@@ -261,8 +272,18 @@ impl CoordinatorService {
             let history = history.clone();
             async move {
                 let mut phase = service.state.lock().await.phase();
+                let mut renewed = Instant::now();
                 loop {
                     tokio::time::sleep(Duration::from_millis(50)).await;
+                    if renewed.elapsed() >= lease::RENEW_EVERY {
+                        match service.lease.renew().await {
+                            Ok(()) => renewed = Instant::now(),
+                            Err(lost @ lease::LeaseError::Lost { .. }) => return Some(lost),
+                            Err(error) => {
+                                tracing::warn!(error = %store::chain(&error), "lease not renewed; retrying");
+                            }
+                        }
+                    }
                     let (changed, done, now_phase, records) = {
                         let mut state = service.state.lock().await;
                         let changed = state.tick(Instant::now());
@@ -287,15 +308,18 @@ impl CoordinatorService {
                             (service.heartbeat_interval_s * 4.0).max(1.0),
                         ))
                         .await;
-                        return;
+                        return None;
                     }
                 }
             }
         };
-        tokio::select! {
-            () = ticker => {}
-            () = shutdown => tracing::warn!("shutdown requested: the job stops; rerun to resume from its last commit"),
-        }
+        let fenced = tokio::select! {
+            lost = ticker => lost,
+            () = shutdown => {
+                tracing::warn!("shutdown requested: the job stops; rerun to resume from its last commit");
+                None
+            }
+        };
         self.stopping.cancel();
         let records = self.state.lock().await.take_history(true);
         self.append_history(&history, &records).await;
@@ -307,6 +331,11 @@ impl CoordinatorService {
             .await
             .map_err(ServeError::Task)?
             .map_err(ServeError::Transport)?;
+        if let Some(lost) = fenced {
+            tracing::error!(error = %lost, "another coordinator took this job over");
+            return Err(ServeError::Lease(lost));
+        }
+        self.lease.release().await;
         let report = self.state.lock().await.report();
         Ok(report)
     }

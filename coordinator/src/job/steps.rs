@@ -1,0 +1,135 @@
+//! The coordinator's step bookkeeping, in memory that does not grow with the run.
+//!
+//! Every step report finds its record through an index by `(phase, step, generation)`, so a
+//! report costs the same at step 10 and at step 300000. Records are handed to the history
+//! writer once sealed (see [`StepLog::take_sealed`]) and then only the newest
+//! [`RETAINED_RECORDS`] stay in memory, for the report; the whole history is in the store.
+//! The loss curves keep one compact row per step.
+
+use std::collections::{BTreeMap, HashMap};
+
+use settings::Phase;
+
+use super::StepRecord;
+
+/// Sealed records kept in memory for the job report (`report.json`'s `steps`).
+pub const RETAINED_RECORDS: usize = 2000;
+
+/// One row of a loss curve: loss and learning rate.
+type CurveRow = (f32, f64);
+
+/// Step records by `(phase, step, generation)`, the newest in memory, the rest in the store.
+#[derive(Debug, Default)]
+pub struct StepLog {
+    /// The records in memory, oldest first.
+    records: Vec<StepRecord>,
+    /// Position in `records` of each `(phase, step, generation)`.
+    index: HashMap<(Phase, u64, u64), usize>,
+    /// Records before this position went to the history writer.
+    sealed: usize,
+    /// Loss and learning rate of every sealed step, by phase and step.
+    curves: HashMap<Phase, BTreeMap<u64, CurveRow>>,
+}
+
+impl StepLog {
+    /// The record of `step` of `phase` in `generation`, created on its first report.
+    pub fn record(&mut self, phase: Phase, step: u64, generation: u64) -> &mut StepRecord {
+        let records = &mut self.records;
+        let position = *self
+            .index
+            .entry((phase, step, generation))
+            .or_insert_with(|| {
+                records.push(StepRecord::new(phase, step, generation));
+                records.len() - 1
+            });
+        &mut self.records[position]
+    }
+
+    /// Records not handed out yet, oldest first: every one but the newest two, which may still
+    /// gain other ranks' reports (a rank finishes step `s + 1` only after every rank finished
+    /// `s`, in the all-reduce, but a report can be late by a step), or all of them once the
+    /// job is over (`all`). Older records then leave memory, the newest
+    /// [`RETAINED_RECORDS`] excepted.
+    pub fn take_sealed(&mut self, all: bool) -> Vec<StepRecord> {
+        let end = if all {
+            self.records.len()
+        } else {
+            self.records.len().saturating_sub(2)
+        };
+        let taken = self
+            .records
+            .get(self.sealed..end)
+            .map(<[StepRecord]>::to_vec)
+            .unwrap_or_default();
+        for record in &taken {
+            self.curves
+                .entry(record.phase)
+                .or_default()
+                .insert(record.step, (record.loss, record.learning_rate));
+        }
+        self.sealed = self.sealed.max(end);
+        // Dropped in batches, so re-indexing costs O(1) per step on average.
+        if self.sealed >= 2 * RETAINED_RECORDS {
+            self.forget(self.sealed - RETAINED_RECORDS);
+        }
+        taken
+    }
+
+    /// Drops the oldest `count` records from memory.
+    fn forget(&mut self, count: usize) {
+        self.records.drain(..count);
+        self.sealed -= count;
+        self.index.retain(|_, position| *position >= count);
+        for position in self.index.values_mut() {
+            *position -= count;
+        }
+    }
+
+    /// The records in memory, oldest first.
+    pub fn retained(&self) -> &[StepRecord] {
+        &self.records
+    }
+
+    /// Loss and learning rate of `phase`'s steps by step number: every sealed step, and the
+    /// records not sealed yet.
+    pub fn curve(&self, phase: Phase) -> BTreeMap<u64, CurveRow> {
+        let mut rows = self.curves.get(&phase).cloned().unwrap_or_default();
+        for record in self.records[self.sealed..]
+            .iter()
+            .filter(|r| r.phase == phase)
+        {
+            rows.insert(record.step, (record.loss, record.learning_rate));
+        }
+        rows
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn memory_stays_bounded_while_every_record_is_handed_out_once() {
+        let mut log = StepLog::default();
+        let mut handed = Vec::new();
+        let steps = 5 * RETAINED_RECORDS as u64 + 17;
+        for step in 0..steps {
+            log.record(Phase::Stage1, step, 1).loss = step as f32;
+            // A second rank's report of the same step finds the same record.
+            log.record(Phase::Stage1, step, 1).checksums.insert(1, 7);
+            handed.extend(log.take_sealed(false).into_iter().map(|r| r.step));
+            assert!(
+                log.retained().len() < 2 * RETAINED_RECORDS + 2,
+                "step {step}"
+            );
+            assert!(log.index.len() == log.records.len());
+        }
+        handed.extend(log.take_sealed(true).into_iter().map(|r| r.step));
+        assert_eq!(handed, (0..steps).collect::<Vec<_>>());
+        let curve = log.curve(Phase::Stage1);
+        assert_eq!(curve.len() as u64, steps);
+        assert_eq!(curve[&(steps - 1)].0, (steps - 1) as f32);
+        let last = log.retained().last().unwrap();
+        assert_eq!((last.step, last.checksums.len()), (steps - 1, 1));
+    }
+}
