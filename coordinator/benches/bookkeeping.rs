@@ -278,10 +278,14 @@ fn run(workers: usize, options: &Options) -> anyhow::Result<String> {
     };
     let last = samples.len() - 1;
     let rss: Vec<f64> = samples.iter().map(|(_, (_, rss), _)| *rss).collect();
+    let windows: Vec<String> = (1..=last)
+        .map(|i| format!("{:.0}", per_report(i)))
+        .collect();
+    let rss_windows: Vec<String> = rss[1..].iter().map(|mb| format!("{mb:.1}")).collect();
     let wall = samples[last].2.duration_since(samples[0].2).as_secs_f64();
     let cpu = (samples[last].1).0 - (samples[0].1).0;
     Ok(format!(
-        "workers={workers} steps={} reports={} commit_every={} samples={} cpu_us_per_report_first={:.1} cpu_us_per_report_last={:.1} cpu_us_per_report_all={:.1} rss_mb_first={:.1} rss_mb_last={:.1} rss_mb_max={:.1} steps_per_s={:.0} wall_s={wall:.1}",
+        "workers={workers} steps={} reports={} commit_every={} samples={} cpu_us_per_report_first={:.1} cpu_us_per_report_last={:.1} cpu_us_per_report_all={:.1} rss_mb_first={:.1} rss_mb_last={:.1} rss_mb_max={:.1} cpu_us_per_report_by_window={} rss_mb_by_window={} steps_per_s={:.0} wall_s={wall:.1}",
         options.steps,
         options.steps * workers as u64,
         options.commit_every,
@@ -292,6 +296,8 @@ fn run(workers: usize, options: &Options) -> anyhow::Result<String> {
         rss[1],
         rss[last],
         rss.iter().copied().fold(0.0, f64::max),
+        windows.join(","),
+        rss_windows.join(","),
         options.steps as f64 / wall,
     ))
 }

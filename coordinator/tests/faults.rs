@@ -1,7 +1,8 @@
 //! Faults injected into real coordinator and worker processes on loopback, each with its
 //! expected end state: frames deleted after indexing, a coordinator stopped while its workers
-//! long-poll, a SIGSTOPped worker, a SIGKILLed and restarted coordinator, and a second
-//! coordinator on the same checkpoint URI. Each prints `fault=... key=value` figures.
+//! long-poll, a SIGSTOPped worker, rank 0 SIGKILLed before the first commit, a late joiner, a
+//! SIGKILLed and restarted coordinator, a second coordinator on the same checkpoint URI, and a
+//! `job.json` that is not a job state. Each prints `fault=... key=value` figures.
 
 mod common;
 
@@ -124,11 +125,18 @@ fn a_sigkilled_coordinator_restarts_after_its_lease_and_resumes_from_its_commit(
     let first_segment = history.join("steps-000000.jsonl");
     let deadline = Instant::now() + Duration::from_secs(60);
     while !first_segment.exists() {
-        assert!(Instant::now() < deadline, "no step history\n{}", running.logs());
+        assert!(
+            Instant::now() < deadline,
+            "no step history\n{}",
+            running.logs()
+        );
         std::thread::sleep(Duration::from_millis(20));
     }
     signal(&running.coordinator, "KILL");
-    let written = std::fs::read_to_string(&first_segment).unwrap().lines().count();
+    let written = std::fs::read_to_string(&first_segment)
+        .unwrap()
+        .lines()
+        .count();
     let _ = wait_exit(&mut running.coordinator, Duration::from_secs(10));
     let killed = Instant::now();
     running.coordinator = running.job.spawn_coordinator(&common::binaries()).unwrap();
@@ -145,9 +153,18 @@ fn a_sigkilled_coordinator_restarts_after_its_lease_and_resumes_from_its_commit(
         "the restarted coordinator began stage 1 afresh (last commit {committed}): {report:#}"
     );
     // The history survived the kill: the first coordinator's segment, then the second's.
-    let kept = std::fs::read_to_string(&first_segment).unwrap().lines().count();
-    assert!(kept >= written.max(1), "{kept} of {written} history lines kept");
-    assert!(history.join("steps-000001.jsonl").exists(), "the restarted coordinator's segment");
+    let kept = std::fs::read_to_string(&first_segment)
+        .unwrap()
+        .lines()
+        .count();
+    assert!(
+        kept >= written.max(1),
+        "{kept} of {written} history lines kept"
+    );
+    assert!(
+        history.join("steps-000001.jsonl").exists(),
+        "the restarted coordinator's segment"
+    );
 }
 
 #[test]
@@ -181,6 +198,119 @@ fn a_second_coordinator_on_the_same_checkpoint_uri_is_refused() {
     assert_eq!(
         report["restarts"], 0,
         "the first job was not disturbed: {report:#}"
+    );
+}
+
+/// Waits until the coordinator's log shows `text`.
+fn wait_for_log(running: &Running, text: &str, limit: Duration) {
+    wait_for_log_count(running, text, 1, limit);
+}
+
+/// Waits until the coordinator's log shows `text` `count` times.
+fn wait_for_log_count(running: &Running, text: &str, count: usize, limit: Duration) {
+    let log = running.job.dir.join("coordinator.log");
+    let deadline = Instant::now() + limit;
+    while std::fs::read_to_string(&log)
+        .unwrap_or_default()
+        .matches(text)
+        .count()
+        < count
+    {
+        assert!(
+            Instant::now() < deadline,
+            "never logged `{text}`\n{}",
+            running.logs()
+        );
+        std::thread::sleep(Duration::from_millis(20));
+    }
+}
+
+#[test]
+fn rank_0_killed_before_the_first_commit_and_the_survivor_starts_the_stage_again() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut job = small_job(dir.path(), 2);
+    job.stage1_steps = 20;
+    job.checkpoint_every = 10;
+    let mut running = Running::start(job);
+    wait_for_log(&running, "group formed", Duration::from_secs(120));
+    let killed = Instant::now();
+    running.workers[0].kill().unwrap();
+    let report = running.finish(Duration::from_secs(300));
+    println!(
+        "fault=rank0_sigkill_before_commit finished_after_s={:.1} restarts={}",
+        killed.elapsed().as_secs_f64(),
+        report["restarts"]
+    );
+    assert_eq!(report["outcome"], "finished", "{report:#}");
+    let generations = report["generations"].as_array().unwrap();
+    assert!(generations.len() >= 2, "{report:#}");
+    assert_eq!(
+        generations[1]["resume_from"], "",
+        "nothing was committed to resume from"
+    );
+    assert_eq!(commits(&report, 1).last().unwrap().0, 20, "{report:#}");
+}
+
+#[test]
+fn a_late_joiner_enters_at_the_next_commit() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut job = small_job(dir.path(), 2);
+    job.stage1_steps = 60;
+    let mut running = Running::start(job);
+    wait_for_first_commit(&running);
+    running.workers[1].kill().unwrap();
+    let _ = running.workers[1].wait();
+    // The survivor trains alone first; only then does the replacement come.
+    wait_for_log_count(&running, "group formed", 2, Duration::from_secs(60));
+    let replacement = running.job.spawn_worker(&common::binaries(), 1).unwrap();
+    running.workers[1] = replacement;
+    let joined = Instant::now();
+    wait_for_log(
+        &running,
+        "the group re-forms at this commit",
+        Duration::from_secs(120),
+    );
+    let entered = joined.elapsed().as_secs_f64();
+    let report = running.finish(Duration::from_secs(300));
+    println!(
+        "fault=late_joiner entered_after_s={entered:.1} restarts={}",
+        report["restarts"]
+    );
+    assert_eq!(report["outcome"], "finished", "{report:#}");
+    let generations = report["generations"].as_array().unwrap();
+    let last_stage1 = generations
+        .iter()
+        .filter(|g| g["stage"] == 1)
+        .last()
+        .unwrap();
+    assert_eq!(last_stage1["world_size"], 2, "{report:#}");
+    assert_ne!(last_stage1["resume_from"], "", "{report:#}");
+    assert_eq!(report["restarts"], 1, "only the kill counts: {report:#}");
+}
+
+#[test]
+fn a_corrupt_job_json_stops_the_start_and_is_left_as_it_is() {
+    let dir = tempfile::tempdir().unwrap();
+    let job = small_job(dir.path(), 1);
+    let runtime = tokio::runtime::Runtime::new().unwrap();
+    runtime.block_on(job.prepare()).unwrap();
+    let state = job.checkpoint_dir().join("job.json");
+    std::fs::create_dir_all(job.checkpoint_dir()).unwrap();
+    std::fs::write(&state, b"{\"job\": \"small\", \"stage\": ").unwrap();
+    let started = Instant::now();
+    let mut coordinator = job.spawn_coordinator(&common::binaries()).unwrap();
+    let status = wait_exit(&mut coordinator, Duration::from_secs(60));
+    let said = std::fs::read_to_string(dir.path().join("coordinator.log")).unwrap();
+    println!(
+        "fault=job_json_corrupt refused_after_s={:.1}",
+        started.elapsed().as_secs_f64()
+    );
+    assert!(!status.success(), "{said}");
+    assert!(said.contains("job.json is not a job state"), "{said}");
+    assert_eq!(
+        std::fs::read(&state).unwrap(),
+        b"{\"job\": \"small\", \"stage\": ",
+        "the state was left as it was"
     );
 }
 

@@ -1,6 +1,7 @@
 //! The job's answers to faults: members stuck in their step while a peer waits, the back-off
 //! a blamed worker sits out, and the job-wide limit on skipped frames.
 
+use std::collections::BTreeMap;
 use std::time::{Duration, Instant};
 
 use proto::v1::{Activity, StepReport};
@@ -93,6 +94,74 @@ impl JobState {
         true
     }
 
+    /// Ends a generation whose replicas' parameter checksums disagreed: the group re-forms
+    /// from the last commit, where every replica is identical again. A member whose checksum
+    /// was the odd one out twice (across registrations) is blamed and sits out a back-off.
+    /// Returns whether a generation ended.
+    pub(super) fn roll_back_divergence(&mut self, now: Instant) -> bool {
+        let Some((generation, odd)) = self.divergence.take() else {
+            return false;
+        };
+        if !self
+            .group
+            .as_ref()
+            .is_some_and(|g| g.generation == generation)
+        {
+            return false;
+        }
+        tracing::error!(
+            generation,
+            ?odd,
+            "replicas diverged; the group rolls back to the last commit"
+        );
+        for worker in odd {
+            let Some(address) = self.members.get(&worker).map(|m| m.address.clone()) else {
+                continue;
+            };
+            let penalty = self.penalties.entry(address).or_default();
+            penalty.divergences += 1;
+            if penalty.divergences >= 2 {
+                self.blame(worker, now);
+            }
+        }
+        self.group = None;
+        self.report.restarts += 1;
+        self.lost_at = Some(now);
+        true
+    }
+
+    /// After a mid-stage commit, ends a group smaller than `expected` when workers that are
+    /// not in it wait for work (late joiners, returned workers): the next group, formed at
+    /// once from the commit just made, takes them in, so nothing is redone.
+    pub(super) fn grow_at_commit(&mut self, step: u64) {
+        let Some(group) = &self.group else {
+            return;
+        };
+        let expected = self.plan.config.workers.expected.0 as usize;
+        let excluded = |address: &str| self.last_tick.is_some_and(|t| self.excluded(address, t));
+        let joiners = self
+            .members
+            .iter()
+            .filter(|(id, m)| {
+                !m.lost
+                    && m.waiting_after.is_some()
+                    && !group.members.contains(id)
+                    && !excluded(&m.address)
+            })
+            .count();
+        if joiners == 0 || group.members.len() >= expected {
+            return;
+        }
+        tracing::info!(
+            generation = group.generation,
+            step,
+            joiners,
+            "workers waiting to join: the group re-forms at this commit"
+        );
+        self.group = None;
+        self.lost_at = None;
+    }
+
     /// Marks `worker` lost and excludes its address from groups for a back-off that doubles
     /// with each failure it is blamed for.
     fn blame(&mut self, worker: u64, now: Instant) {
@@ -167,5 +236,26 @@ impl JobState {
     /// Why the job stopped short, if it did.
     pub fn failure(&self) -> Option<&str> {
         self.durable.failure.as_deref()
+    }
+}
+
+/// The ranks whose checksum differs from the one most ranks share; empty when no checksum is
+/// held by more than half of them (two replicas that disagree: either may be wrong).
+pub(super) fn odd_ranks(checksums: &BTreeMap<u32, u32>) -> Vec<u32> {
+    let mut counts: BTreeMap<u32, usize> = BTreeMap::new();
+    for checksum in checksums.values() {
+        *counts.entry(*checksum).or_default() += 1;
+    }
+    let majority = counts
+        .iter()
+        .find(|(_, count)| 2 * **count > checksums.len())
+        .map(|(&checksum, _)| checksum);
+    match majority {
+        Some(majority) => checksums
+            .iter()
+            .filter(|(_, checksum)| **checksum != majority)
+            .map(|(&rank, _)| rank)
+            .collect(),
+        None => Vec::new(),
     }
 }

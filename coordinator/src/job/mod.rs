@@ -49,6 +49,8 @@ struct Member {
 struct Penalty {
     /// Generations this worker was blamed for.
     failures: u32,
+    /// Times its parameters were the odd ones out among the replicas.
+    divergences: u32,
     /// Not picked into a group before this.
     excluded_until: Option<Instant>,
 }
@@ -122,6 +124,11 @@ pub struct JobState {
     skipped: HashMap<(u64, u64), u64>,
     /// Step records: found by index, the newest in memory, the rest handed to the history.
     steps: steps::StepLog,
+    /// A generation whose replicas' checksums disagreed, with the members whose checksum
+    /// was the odd one out (empty when no majority names one).
+    divergence: Option<(u64, Vec<u64>)>,
+    /// The time of the last tick, for decisions outside it (who may join at a commit).
+    last_tick: Option<Instant>,
     current_step: u64,
     last_loss: f32,
 }
@@ -174,6 +181,8 @@ impl JobState {
                 ..Report::default()
             },
             steps: steps::StepLog::default(),
+            divergence: None,
+            last_tick: None,
             skipped: HashMap::new(),
             durable,
             plan,
@@ -354,6 +363,10 @@ impl JobState {
                 );
                 tracing::error!("{message}");
                 self.report.checksum_mismatches.push(message);
+                let odd = faults::odd_ranks(&record.checksums);
+                let members = self.group.as_ref().map_or(&[][..], |g| &g.members[..]);
+                let odd = odd.iter().filter_map(|&r| members.get(r as usize)).copied();
+                self.divergence = Some((report.generation, odd.collect()));
             }
         }
         true
@@ -387,6 +400,7 @@ impl JobState {
         self.report.commits.push(commit.clone());
         self.durable.last_commit = Some(commit.clone());
         if commit.step < self.phase_steps(commit.phase) {
+            self.grow_at_commit(commit.step);
             return Ok(false);
         }
         self.group = None;
@@ -420,6 +434,7 @@ impl JobState {
     /// Declares silent workers lost, abandons broken generations and forms new ones. Returns
     /// true when something changed that waiters should see.
     pub fn tick(&mut self, now: Instant) -> bool {
+        self.last_tick = Some(now);
         let mut changed = false;
         for (id, member) in self.members.iter_mut() {
             if !member.lost && now.duration_since(member.last_seen) > self.timing.heartbeat_timeout
@@ -430,6 +445,7 @@ impl JobState {
             }
         }
         changed |= self.remove_stalled(now);
+        changed |= self.roll_back_divergence(now);
         if let Some(group) = &self.group {
             let lost = group
                 .members

@@ -18,16 +18,21 @@ fn plan(evaluate: bool) -> Plan {
 
 /// The unit job's plan with `extra` top-level YAML.
 fn plan_with(extra: &str) -> Plan {
+    plan_of("{expected: 2, minimum: 1, regroup_grace_s: 1}", extra)
+}
+
+/// The unit job's plan with its `workers:` section and `extra` top-level YAML.
+fn plan_of(workers: &str, extra: &str) -> Plan {
     let yaml = format!(
         "job: unit
 auth: {{token: t}}
 model: {{preset: tiny}}
 data:
   generated: {{scenes: 1, trajectories: 1, frames: 6}}
-stage1: {{steps: 4, global_batch: 2, micro_batch: 1, lpips_weight: 0}}
-stage2: {{steps: 2, global_batch: 2, micro_batch: 1, lpips_weight: 0}}
+stage1: {{steps: 4, global_batch: 6, micro_batch: 1, lpips_weight: 0}}
+stage2: {{steps: 2, global_batch: 6, micro_batch: 1, lpips_weight: 0}}
 checkpoint: {{uri: /tmp/unit-ckpt, every: 2}}
-workers: {{expected: 2, minimum: 1, regroup_grace_s: 1}}
+workers: {workers}
 {extra}"
     );
     let config = ClusterConfig::from_yaml(&yaml, "unit.yaml").unwrap();
@@ -493,5 +498,104 @@ fn a_timeout_blames_the_rank_the_evidence_names() {
         run.state
             .request_assignment(w0, generation, run.now)
             .is_ok()
+    );
+}
+
+/// Every member of the running group reports `step` with the checksum `checksum_of` gives it.
+fn report_checksums(run: &mut Run, generation: u64, checksum_of: impl Fn(u64) -> u32) {
+    for worker in run.workers.clone() {
+        let report = StepReport {
+            worker_id: worker,
+            generation,
+            step: 0,
+            parameter_checksum: checksum_of(worker),
+            checksum_computed: true,
+            ..StepReport::default()
+        };
+        run.state.report_step(worker, Phase::Stage1, &report);
+    }
+}
+
+#[test]
+fn diverged_replicas_roll_back_and_a_repeat_odd_one_sits_out() {
+    let mut run = Run::of(
+        plan_of("{expected: 3, minimum: 1, regroup_grace_s: 1}", ""),
+        None,
+    );
+    let odd = run
+        .state
+        .register("w2".into(), "127.0.0.1:7002".into(), run.now);
+    run.workers.push(odd);
+    let mut generation = 0;
+    for round in 1..=2u64 {
+        let group = run.assign(generation);
+        assert!(
+            group.iter().all(Option::is_some),
+            "round {round}: a group of three"
+        );
+        generation = group[0].as_ref().unwrap().generation;
+        report_checksums(&mut run, generation, |w| if w == odd { 2 } else { 1 });
+        assert!(
+            run.state.tick(run.now),
+            "round {round}: the divergence ends the generation"
+        );
+        let report = run.state.report();
+        assert_eq!(report.restarts, round);
+        let blamed: Vec<&str> = report
+            .exclusions
+            .iter()
+            .map(|e| e.worker.as_str())
+            .collect();
+        assert_eq!(
+            blamed,
+            if round == 1 { vec![] } else { vec!["w2"] },
+            "round {round}"
+        );
+        run.now += Duration::from_secs(2);
+    }
+}
+
+#[test]
+fn two_replicas_that_disagree_roll_back_without_blame() {
+    let mut run = Run::new(false, None);
+    let generation = run.assign(0)[0].as_ref().unwrap().generation;
+    let first = run.workers[0];
+    report_checksums(&mut run, generation, |w| if w == first { 1 } else { 2 });
+    assert!(run.state.tick(run.now));
+    let report = run.state.report();
+    assert_eq!((report.restarts, report.exclusions.len()), (1, 0));
+}
+
+#[test]
+fn a_late_joiner_enters_at_the_next_commit_without_a_restart() {
+    let mut run = Run::new(false, None);
+    let generation = run.assign(0)[0].as_ref().unwrap().generation;
+    let (w0, w1) = (run.workers[0], run.workers[1]);
+    assert!(run.state.leave(w1, "scaled down"));
+    run.workers = vec![w0];
+    assert!(run.assign(generation)[0].is_none(), "the grace period runs");
+    run.now += Duration::from_secs(2);
+    let alone = run.assign(generation);
+    let generation = alone[0].as_ref().unwrap().generation;
+    assert_eq!(train(&alone[0]).world_size, 1);
+    let joiner = run
+        .state
+        .register("w9".into(), "127.0.0.1:7009".into(), run.now);
+    run.workers.push(joiner);
+    assert!(
+        run.state
+            .request_assignment(joiner, 0, run.now)
+            .unwrap()
+            .is_none()
+    );
+    assert!(!run.commit(w0, Phase::Stage1, 2, generation));
+    let grown = run.assign(generation);
+    let (first, second) = (train(&grown[0]), train(&grown[1]));
+    assert_eq!((first.world_size, second.world_size), (2, 2));
+    assert_eq!(first.resume_from, "mem://stage1/2", "nothing is redone");
+    assert_eq!(
+        run.state.report().restarts,
+        1,
+        "only the leave counted as a restart"
     );
 }

@@ -193,7 +193,12 @@ impl Ring {
             .initial_connection_window_size(Some(32 * 1024 * 1024))
             .connect_timeout(Duration::from_secs(2));
         let deadline = Instant::now() + timeout;
+        // A right neighbour that died before the ring formed would hold this rank here for
+        // the whole timeout; the coordinator's end of the generation releases it at once.
         let channel = loop {
+            if *ring.cancel.borrow() {
+                return Err(CollectiveError::Cancelled);
+            }
             match endpoint.connect().await {
                 Ok(channel) => break channel,
                 Err(e) if Instant::now() >= deadline => return Err(failed(e.to_string())),
