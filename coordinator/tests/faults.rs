@@ -278,11 +278,7 @@ fn a_late_joiner_enters_at_the_next_commit() {
     );
     assert_eq!(report["outcome"], "finished", "{report:#}");
     let generations = report["generations"].as_array().unwrap();
-    let last_stage1 = generations
-        .iter()
-        .filter(|g| g["stage"] == 1)
-        .last()
-        .unwrap();
+    let last_stage1 = generations.iter().rfind(|g| g["stage"] == 1).unwrap();
     assert_eq!(last_stage1["world_size"], 2, "{report:#}");
     assert_ne!(last_stage1["resume_from"], "", "{report:#}");
     assert_eq!(report["restarts"], 1, "only the kill counts: {report:#}");

@@ -102,10 +102,10 @@ impl JobState {
         let Some((generation, odd)) = self.divergence.take() else {
             return false;
         };
-        if !self
+        if self
             .group
             .as_ref()
-            .is_some_and(|g| g.generation == generation)
+            .is_none_or(|g| g.generation != generation)
         {
             return false;
         }
