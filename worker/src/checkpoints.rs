@@ -5,8 +5,8 @@
 use std::path::Path;
 use std::time::Duration;
 
-use anyhow::{Context, anyhow, bail};
-use data::store::DataRoot;
+use anyhow::{anyhow, bail};
+use data::store::{DataRoot, StoreError};
 use proto::convert::phase_to_wire;
 use proto::v1::CheckpointCommit;
 use settings::Phase;
@@ -37,33 +37,57 @@ pub async fn upload(dir: &Path, location: &str, phase: Phase, step: u64) -> anyh
     Ok(())
 }
 
+/// A committed checkpoint that does not verify: the store holds something other than what
+/// its `COMMIT.json` says. The coordinator falls back to the commit before it.
+#[derive(Debug, thiserror::Error)]
+#[error("checkpoint {location} is corrupt: {reason}")]
+pub struct CorruptCheckpoint {
+    /// Where it is.
+    pub location: String,
+    /// What does not match.
+    pub reason: String,
+}
+
 /// Downloads the committed checkpoint at `location` into `dir`; fails when it has no
 /// `COMMIT.json`, the manifest names a file outside the checkpoint, or a file's size or CRC-32
-/// differs from it.
+/// differs from it. A checkpoint that is there but does not verify fails with
+/// [`CorruptCheckpoint`]; a store that cannot be reached, with its own error.
 pub async fn download(location: &str, dir: &Path) -> anyhow::Result<CommitManifest> {
+    let corrupt = |reason: String| CorruptCheckpoint {
+        location: location.to_string(),
+        reason,
+    };
     let root = DataRoot::open(location)?;
     let manifest: CommitManifest = serde_json::from_slice(&root.read(MANIFEST_NAME).await?)
-        .map_err(|e| anyhow!("{location}/{MANIFEST_NAME}: {e}"))?;
-    manifest
-        .validate()
-        .with_context(|| format!("checkpoint {location}"))?;
+        .map_err(|e| corrupt(format!("{MANIFEST_NAME}: {e}")))?;
+    manifest.validate().map_err(|e| corrupt(e.to_string()))?;
     std::fs::create_dir_all(dir)?;
     for file in &manifest.files {
-        let bytes = root.read(&file.name).await?;
-        anyhow::ensure!(
-            bytes.len() as u64 == file.bytes,
-            "{location}/{}: {} bytes, {MANIFEST_NAME} says {}",
-            file.name,
-            bytes.len(),
-            file.bytes
-        );
+        let bytes = match root.read(&file.name).await {
+            Ok(bytes) => bytes,
+            Err(StoreError::NotFound { .. }) => {
+                return Err(corrupt(format!("{} is missing", file.name)).into());
+            }
+            Err(error) => return Err(error.into()),
+        };
+        if bytes.len() as u64 != file.bytes {
+            return Err(corrupt(format!(
+                "{}: {} bytes, {MANIFEST_NAME} says {}",
+                file.name,
+                bytes.len(),
+                file.bytes
+            ))
+            .into());
+        }
         if let Some(expected) = file.crc32 {
             let found = crc32fast::hash(&bytes);
-            anyhow::ensure!(
-                found == expected,
-                "{location}/{}: CRC-32 {found:08x}, {MANIFEST_NAME} says {expected:08x}: the file changed after it was committed",
-                file.name
-            );
+            if found != expected {
+                return Err(corrupt(format!(
+                    "{}: CRC-32 {found:08x}, {MANIFEST_NAME} says {expected:08x}: the file changed after it was committed",
+                    file.name
+                ))
+                .into());
+            }
         }
         std::fs::write(dir.join(&file.name), bytes)?;
     }

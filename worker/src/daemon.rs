@@ -15,6 +15,7 @@ use proto::v1::assignment::Work;
 use settings::{DeviceChoice, XFactorConfig};
 use tokio_util::sync::CancellationToken;
 
+use crate::checkpoints::CorruptCheckpoint;
 use crate::collective::{CollectiveError, CollectiveService, Link, Mailbox, PeerTls, spawn_server};
 use crate::session::{Progress, await_assignment, connect, heartbeats, leave, register};
 use crate::{evaluate, metrics, shutdown, training};
@@ -212,6 +213,11 @@ pub fn run(options: WorkerOptions) -> anyhow::Result<()> {
                 failure = Some(GenerationFailure {
                     reason: format!("{error:#}"),
                     suspect_rank: suspect_rank(&error),
+                    corrupt_checkpoint: error
+                        .chain()
+                        .find_map(|cause| cause.downcast_ref::<CorruptCheckpoint>())
+                        .map(|corrupt| corrupt.location.clone())
+                        .unwrap_or_default(),
                 });
                 if failures >= MAX_CONSECUTIVE_FAILURES {
                     bail!("{failures} generations in a row failed; last error: {error:#}");

@@ -94,6 +94,45 @@ impl JobState {
         true
     }
 
+    /// A member of `generation` found the committed checkpoint at `location` corrupt. When it
+    /// is the phase's newest commit, the phase falls back to the commit before it (or to the
+    /// phase's start), no one is blamed, and the group re-forms from there. Returns whether
+    /// the generation ended.
+    pub fn checkpoint_corrupt(
+        &mut self,
+        worker: u64,
+        generation: u64,
+        location: &str,
+        now: Instant,
+    ) -> bool {
+        let Some(group) = self.group.as_ref().filter(|g| g.generation == generation) else {
+            return false;
+        };
+        if !group.members.contains(&worker) {
+            return false;
+        }
+        if self
+            .durable
+            .last_commit
+            .as_ref()
+            .is_some_and(|c| c.location == location)
+        {
+            self.durable.fall_back();
+            tracing::error!(
+                %location,
+                fallback = ?self.durable.last_commit.as_ref().map(|c| &c.location),
+                "the newest commit is corrupt; the phase falls back to the one before it"
+            );
+            self.report.fallbacks.push(location.to_string());
+        } else {
+            tracing::error!(%location, "a checkpoint the group starts from is corrupt; nothing to fall back to");
+        }
+        self.group = None;
+        self.report.restarts += 1;
+        self.lost_at = Some(now);
+        true
+    }
+
     /// Ends a generation whose replicas' parameter checksums disagreed: the group re-forms
     /// from the last commit, where every replica is identical again. A member whose checksum
     /// was the odd one out twice (across registrations) is blamed and sits out a back-off.

@@ -398,7 +398,7 @@ impl JobState {
         }
         tracing::info!(phase = %commit.phase, step = commit.step, location = %commit.location, "checkpoint committed");
         self.report.commits.push(commit.clone());
-        self.durable.last_commit = Some(commit.clone());
+        self.durable.push_commit(commit.clone());
         if commit.step < self.phase_steps(commit.phase) {
             self.grow_at_commit(commit.step);
             return Ok(false);
@@ -411,6 +411,7 @@ impl JobState {
                 self.durable.stage1_final = Some(commit.location.clone());
                 self.report.stage1_final = Some(commit.location);
                 self.durable.last_commit = None;
+                self.durable.earlier_commits.clear();
                 tracing::info!("stage 1 finished; stage 2 starts from its final weights");
             }
             Phase::Stage2 => {

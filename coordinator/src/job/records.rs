@@ -28,6 +28,10 @@ pub struct Durable {
     pub phase: Phase,
     /// Newest commit of the current phase.
     pub last_commit: Option<Commit>,
+    /// The commits of the current phase before `last_commit`, newest last (at most
+    /// [`Durable::FALLBACKS`]): where the phase resumes when the newest proves corrupt.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub earlier_commits: Vec<Commit>,
     /// Stage 1's final checkpoint, once there is one.
     pub stage1_final: Option<String>,
     /// Stage 2's final checkpoint, once there is one (what the evaluation stage evaluates).
@@ -42,12 +46,33 @@ pub struct Durable {
 }
 
 impl Durable {
+    /// Commits kept to fall back on behind the newest.
+    pub const FALLBACKS: usize = 2;
+
+    /// Makes `commit` the newest, keeping the one it replaces to fall back on.
+    pub fn push_commit(&mut self, commit: Commit) {
+        if let Some(previous) = self.last_commit.replace(commit) {
+            self.earlier_commits.push(previous);
+            let excess = self.earlier_commits.len().saturating_sub(Self::FALLBACKS);
+            self.earlier_commits.drain(..excess);
+        }
+    }
+
+    /// Drops the newest commit (found corrupt) for the one before it, if any; returns the
+    /// commit dropped.
+    pub fn fall_back(&mut self) -> Option<Commit> {
+        let dropped = self.last_commit.take();
+        self.last_commit = self.earlier_commits.pop();
+        dropped
+    }
+
     /// A job that has done nothing yet.
     pub fn new(job: String) -> Self {
         Self {
             job,
             phase: Phase::Stage1,
             last_commit: None,
+            earlier_commits: Vec::new(),
             stage1_final: None,
             stage2_final: None,
             evaluation: None,
@@ -113,6 +138,8 @@ pub struct Report {
     pub checksum_mismatches: Vec<String>,
     /// Generations abandoned because a worker was lost or failed.
     pub restarts: u64,
+    /// Commits found corrupt and dropped for the one before them.
+    pub fallbacks: Vec<String>,
     /// Every generation: its group and where it started from.
     pub generations: Vec<GenerationStart>,
     /// Workers blamed for a failed generation and sent to sit out a back-off.

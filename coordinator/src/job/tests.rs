@@ -599,3 +599,31 @@ fn a_late_joiner_enters_at_the_next_commit_without_a_restart() {
         "only the leave counted as a restart"
     );
 }
+
+#[test]
+fn a_corrupt_newest_commit_falls_back_to_the_one_before_without_blame() {
+    let mut run = Run::new(false, None);
+    let generation = run.assign(0)[0].as_ref().unwrap().generation;
+    let w0 = run.workers[0];
+    assert!(!run.commit(w0, Phase::Stage1, 2, generation));
+    assert!(!run.commit(w0, Phase::Stage1, 3, generation));
+    assert!(
+        run.state
+            .checkpoint_corrupt(w0, generation, "mem://stage1/3", run.now)
+    );
+    assert_eq!(run.state.durable().last_commit.as_ref().unwrap().step, 2);
+    let report = run.state.report();
+    assert_eq!(report.fallbacks, ["mem://stage1/3"]);
+    assert!(
+        report.exclusions.is_empty(),
+        "no one is blamed for the store"
+    );
+    assert!(
+        !run.state
+            .checkpoint_corrupt(w0, generation, "mem://stage1/2", run.now),
+        "a report about an ended generation changes nothing"
+    );
+    run.now += Duration::from_secs(2);
+    let again = run.assign(generation);
+    assert_eq!(train(&again[0]).resume_from, "mem://stage1/2");
+}

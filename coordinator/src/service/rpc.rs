@@ -7,9 +7,9 @@ use std::time::{Duration, Instant};
 use proto::convert::{ConvertError, device_from_wire, phase_from_wire};
 use proto::v1::coordinator_server::Coordinator;
 use proto::v1::{
-    Assignment, AwaitAssignmentRequest, CheckpointCommit, CommitAck, HeartbeatReply,
-    HeartbeatRequest, JobStatus, LeaveReply, LeaveRequest, RegisterReply, RegisterRequest,
-    StatusRequest, StepAck, StepReport,
+    Assignment, AwaitAssignmentRequest, CheckpointCommit, CommitAck, GenerationFailure,
+    HeartbeatReply, HeartbeatRequest, JobStatus, LeaveReply, LeaveRequest, RegisterReply,
+    RegisterRequest, StatusRequest, StepAck, StepReport,
 };
 use settings::XFactorConfig;
 use tonic::{Request, Response, Status};
@@ -56,16 +56,7 @@ impl Coordinator for CoordinatorService {
         let span = tracing::debug_span!("rpc_await_assignment", worker = request.worker_id);
         self.sessions.check(request.worker_id, &request.session)?;
         if let Some(failure) = &request.failure {
-            let ended = self.state.lock().await.generation_failed(
-                request.worker_id,
-                request.after_generation,
-                &failure.reason,
-                failure.suspect_rank,
-                Instant::now(),
-            );
-            if ended {
-                self.changed.notify_waiters();
-            }
+            self.record_failure_report(&request, failure).await?;
         }
         self.assign(request).instrument(span).await
     }
@@ -171,6 +162,44 @@ impl Coordinator for CoordinatorService {
 }
 
 impl CoordinatorService {
+    /// Acts on a worker's report that its part of a generation failed: ends the generation
+    /// and blames the suspect, or, for a corrupt commit, falls back to the one before it and
+    /// records that in `job.json` so a restarted coordinator does not pick it again.
+    async fn record_failure_report(
+        &self,
+        request: &AwaitAssignmentRequest,
+        failure: &GenerationFailure,
+    ) -> Result<(), Status> {
+        let (worker, generation, now) =
+            (request.worker_id, request.after_generation, Instant::now());
+        let mut state = self.state.lock().await;
+        if failure.corrupt_checkpoint.is_empty() {
+            let ended = state.generation_failed(
+                worker,
+                generation,
+                &failure.reason,
+                failure.suspect_rank,
+                now,
+            );
+            drop(state);
+            if ended {
+                self.changed.notify_waiters();
+            }
+            return Ok(());
+        }
+        if !state.checkpoint_corrupt(worker, generation, &failure.corrupt_checkpoint, now) {
+            return Ok(());
+        }
+        let durable = state.durable().clone();
+        drop(state);
+        self.changed.notify_waiters();
+        write_durable(&self.checkpoints, &durable, &self.durable_version)
+            .await
+            .map_err(|e| {
+                Status::unavailable(format!("recording the fall-back failed: {}", chain(&e)))
+            })
+    }
+
     async fn admit(&self, request: RegisterRequest) -> Result<Response<RegisterReply>, Status> {
         if request.protocol_version != proto::PROTOCOL_VERSION {
             return Err(Status::failed_precondition(format!(
