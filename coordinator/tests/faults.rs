@@ -355,6 +355,35 @@ fn a_corrupt_newest_commit_falls_back_to_the_one_before() {
     );
 }
 
+#[test]
+fn a_final_commit_the_store_refuses_is_retried_and_the_job_finishes_once_the_store_is_fixed() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut job = small_job(dir.path(), 2);
+    // The stage's only commit is its final one.
+    job.stage1_steps = 2;
+    job.checkpoint_every = 2;
+    let runtime = tokio::runtime::Runtime::new().unwrap();
+    runtime.block_on(job.prepare()).unwrap();
+    // A file where the stage's checkpoints go: every upload under it fails.
+    let blocker = job.checkpoint_dir().join("stage1");
+    std::fs::create_dir_all(job.checkpoint_dir()).unwrap();
+    std::fs::write(&blocker, b"not a directory").unwrap();
+    let running = Running::start(job);
+    wait_for_log(&running, "generation failed", Duration::from_secs(240));
+    let failed = Instant::now();
+    std::fs::remove_file(&blocker).unwrap();
+    let report = running.finish(Duration::from_secs(300));
+    println!(
+        "fault=final_commit_refused finished_after_fix_s={:.1} restarts={} exclusions={}",
+        failed.elapsed().as_secs_f64(),
+        report["restarts"],
+        report["exclusions"].as_array().map_or(0, Vec::len)
+    );
+    assert_eq!(report["outcome"], "finished", "{report:#}");
+    assert!(report["restarts"].as_u64().unwrap() >= 1, "{report:#}");
+    assert_eq!(commits(&report, 1).last().unwrap().0, 2, "{report:#}");
+}
+
 /// How many commits `job.json` under `checkpoints` knows for the current stage.
 fn commits_in_job_json(checkpoints: &std::path::Path) -> usize {
     let Ok(bytes) = std::fs::read(checkpoints.join("job.json")) else {
