@@ -44,6 +44,8 @@ pub struct LocalJob {
     pub port: u16,
     /// Seed of data and training.
     pub seed: u64,
+    /// A worker stuck in its step this long while a peer waits for it is removed.
+    pub stall_timeout_s: f64,
     /// Use in-memory generated scenes instead of a stored dataset.
     pub in_memory: bool,
     /// Evaluate stage 2's final weights after training (a small TPS, probe and
@@ -53,6 +55,8 @@ pub struct LocalJob {
     pub coordinator_metrics_port: Option<u16>,
     /// Ports of the workers' `/metrics` endpoints, by worker index; missing: no endpoint.
     pub worker_metrics_ports: Vec<u16>,
+    /// More `xfactor-worker` arguments, by worker index (fault drills, say).
+    pub worker_args: Vec<Vec<String>>,
     /// Where the generated dataset goes; `None`: `dir/data`. A URI such as `s3://bucket/data`
     /// puts it in an object store.
     pub data_uri: Option<String>,
@@ -83,10 +87,12 @@ impl LocalJob {
             checkpoint_every: 5,
             port,
             seed: 7,
+            stall_timeout_s: 60.0,
             in_memory: false,
             evaluate: false,
             coordinator_metrics_port: None,
             worker_metrics_ports: Vec::new(),
+            worker_args: Vec::new(),
             data_uri: None,
             checkpoint_uri: None,
             store_env: Vec::new(),
@@ -207,8 +213,8 @@ impl LocalJob {
         }
         let _ = writeln!(
             yaml,
-            "workers:\n  expected: {}\n  minimum: {}\n  device: cpu\n  threads: 1\n  heartbeat_interval_s: 0.25\n  heartbeat_timeout_s: 3\n  regroup_grace_s: 1\n  quorum_timeout_s: 120",
-            self.workers, self.minimum
+            "workers:\n  expected: {}\n  minimum: {}\n  device: cpu\n  threads: 1\n  heartbeat_interval_s: 0.25\n  heartbeat_timeout_s: 3\n  regroup_grace_s: 1\n  quorum_timeout_s: 120\n  stall_timeout_s: {}",
+            self.workers, self.minimum, self.stall_timeout_s
         );
         yaml
     }
@@ -257,6 +263,7 @@ impl LocalJob {
             .arg(format!("local-{index}"))
             .arg("--scratch")
             .arg(self.dir.join("scratch"))
+            .args(self.worker_args.get(index).into_iter().flatten())
             .envs(self.store_env.iter().map(|(key, value)| (key, value)))
             .stdout(Stdio::null())
             .stderr(log)

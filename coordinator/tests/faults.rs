@@ -9,7 +9,7 @@ mod common;
 use std::time::{Duration, Instant};
 
 use common::{
-    Running, commits, last_committed, signal, small_job, wait_exit, wait_for_first_commit,
+    Running, commits, last_committed, signal, small_job, wait_exit, wait_for_first_commit, walk,
 };
 use coordinator::local::{LocalJob, free_port};
 
@@ -311,51 +311,6 @@ fn a_corrupt_job_json_stops_the_start_and_is_left_as_it_is() {
 }
 
 #[test]
-fn a_corrupt_newest_commit_falls_back_to_the_one_before() {
-    let dir = tempfile::tempdir().unwrap();
-    let mut job = small_job(dir.path(), 2);
-    job.stage1_steps = 40;
-    let mut running = Running::start(job);
-    let checkpoints = running.job.checkpoint_dir();
-    let deadline = Instant::now() + Duration::from_secs(240);
-    while commits_in_job_json(&checkpoints) < 2 {
-        assert!(
-            Instant::now() < deadline,
-            "no second commit\n{}",
-            running.logs()
-        );
-        std::thread::sleep(Duration::from_millis(20));
-    }
-    // Freeze the group, change a committed file behind its COMMIT.json, and make the group
-    // re-form so that it must resume from that commit.
-    for worker in &running.workers {
-        signal(worker, "STOP");
-    }
-    let newest = last_committed(&checkpoints);
-    let weights = std::path::Path::new(&newest).join("model.safetensors");
-    let mut bytes = std::fs::read(&weights).unwrap();
-    let last = bytes.len() - 1;
-    bytes[last] ^= 0x5a;
-    std::fs::write(&weights, bytes).unwrap();
-    running.workers[1].kill().unwrap();
-    signal(&running.workers[0], "CONT");
-    let corrupted = Instant::now();
-    let report = running.finish(Duration::from_secs(300));
-    println!(
-        "fault=corrupt_newest_commit finished_after_s={:.1} restarts={} fallbacks={}",
-        corrupted.elapsed().as_secs_f64(),
-        report["restarts"],
-        report["fallbacks"]
-    );
-    assert_eq!(report["outcome"], "finished", "{report:#}");
-    assert_eq!(report["fallbacks"][0], newest.as_str(), "{report:#}");
-    assert!(
-        report["exclusions"].as_array().unwrap().len() <= 1,
-        "{report:#}"
-    );
-}
-
-#[test]
 fn a_final_commit_the_store_refuses_is_retried_and_the_job_finishes_once_the_store_is_fixed() {
     let dir = tempfile::tempdir().unwrap();
     let mut job = small_job(dir.path(), 2);
@@ -382,27 +337,4 @@ fn a_final_commit_the_store_refuses_is_retried_and_the_job_finishes_once_the_sto
     assert_eq!(report["outcome"], "finished", "{report:#}");
     assert!(report["restarts"].as_u64().unwrap() >= 1, "{report:#}");
     assert_eq!(commits(&report, 1).last().unwrap().0, 2, "{report:#}");
-}
-
-/// How many commits `job.json` under `checkpoints` knows for the current stage.
-fn commits_in_job_json(checkpoints: &std::path::Path) -> usize {
-    let Ok(bytes) = std::fs::read(checkpoints.join("job.json")) else {
-        return 0;
-    };
-    let state: serde_json::Value = serde_json::from_slice(&bytes).unwrap_or_default();
-    let earlier = state["earlier_commits"].as_array().map_or(0, Vec::len);
-    earlier + usize::from(!state["last_commit"].is_null())
-}
-
-fn walk(dir: &std::path::Path) -> Vec<std::path::PathBuf> {
-    let mut found = Vec::new();
-    for entry in std::fs::read_dir(dir).into_iter().flatten().flatten() {
-        let path = entry.path();
-        if path.is_dir() {
-            found.extend(walk(&path));
-        } else {
-            found.push(path);
-        }
-    }
-    found
 }

@@ -50,6 +50,9 @@ pub struct WorkerOptions {
     pub metrics_address: Option<String>,
     /// TLS towards the coordinator and between ranks; `None`: plain HTTP/2.
     pub tls: Option<WorkerTls>,
+    /// Fault drill: from this step on, perturb this replica's all-reduced gradients (a
+    /// silently faulty accelerator) so the job's divergence handling can be exercised.
+    pub drill_diverge_from_step: Option<u64>,
 }
 
 /// A worker's TLS files. With `identity`, its Collective service runs TLS too and peers are

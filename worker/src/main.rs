@@ -89,6 +89,11 @@ struct DaemonArgs {
     /// The private key (PEM) of --tls-cert
     #[arg(long, value_name = "KEY.pem", requires = "tls_cert")]
     tls_key: Option<PathBuf>,
+    /// Fault drill: from this step on, this worker perturbs its copy of the all-reduced
+    /// gradients, so its replica silently diverges as on a faulty accelerator; the
+    /// coordinator's parameter checksums must catch it. Never set it in a real run
+    #[arg(long, value_name = "STEP")]
+    drill_diverge_from_step: Option<u64>,
 }
 
 /// A whole number of seconds or a fraction, above zero and small enough for a `Duration`.
@@ -140,6 +145,7 @@ impl DaemonArgs {
                 .unwrap_or_else(|| std::env::temp_dir().join(format!("xfactor-worker-{pid}"))),
             metrics_address: self.metrics_address,
             tls,
+            drill_diverge_from_step: self.drill_diverge_from_step,
         })
     }
 }

@@ -1,6 +1,6 @@
 //! One rank's part of a training generation: build or resume the trainer, then per step
 //! gradients of the rank's slice -> ring all-reduce -> apply -> report, and (rank 0) the
-//! commits.
+//! commits, uploaded in the background while the next steps train.
 
 use std::path::Path;
 use std::sync::atomic::Ordering;
@@ -20,7 +20,7 @@ use trainer_core::flat::{flatten_gradients, parameter_checksum, unflatten_gradie
 use trainer_core::lpips::Lpips;
 use trainer_core::trainer::Trainer;
 
-use crate::checkpoints::{self, CommitRequest};
+use crate::checkpoints::{self, CommitRequest, InFlightCommit};
 use crate::collective::{Ring, RingKeys};
 use crate::daemon::{Ending, Group};
 use crate::session::Client;
@@ -145,6 +145,8 @@ pub fn train_generation(
     registry.set(&metrics::STAGE, &[], f64::from(phase.number()));
     registry.set(&metrics::RANK, &[], f64::from(assignment.rank));
     registry.set(&metrics::GENERATION, &[], generation as f64);
+    // Rank 0's last checkpoint while it uploads; aborted if this generation ends in error.
+    let mut in_flight: Option<InFlightCommit> = None;
     while trainer.step() < assignment.total_steps {
         let step = trainer.step();
         let _span = tracing::info_span!("step", step).entered();
@@ -168,6 +170,17 @@ pub fn train_generation(
             .with_context(|| format!("all-reduce of step {step}"))?;
         ring = returned;
         let loss = flat.pop().unwrap_or(f32::NAN);
+        if options
+            .drill_diverge_from_step
+            .is_some_and(|from| step >= from)
+            && let Some(first) = flat.first_mut()
+        {
+            *first += 1.0;
+            tracing::warn!(
+                step,
+                "fault drill: this replica's reduced gradients perturbed"
+            );
+        }
         let grads = unflatten_gradients(trainer.model(), &flat)?;
         let outcome = trainer.apply_gradients(&grads, loss);
         let done = trainer.step();
@@ -237,11 +250,27 @@ pub fn train_generation(
         if !ack.generation_current {
             bail!("generation {generation} is no longer current");
         }
+        if let Some(finished) = in_flight.take_if(|commit| commit.is_finished()) {
+            finished.wait(runtime)?;
+        }
         let commit_due = done.is_multiple_of(assignment.checkpoint_every.max(1))
             || done == assignment.total_steps;
         if rank == 0 && commit_due {
             let _span = tracing::info_span!("checkpoint", step = done).entered();
-            progress.doing(Activity::Committing);
+            let last = done == assignment.total_steps;
+            if let Some(previous) = in_flight.take() {
+                if !last {
+                    tracing::warn!(
+                        previous = previous.step,
+                        location = %previous.location,
+                        "checkpoint of this step skipped: the previous one is still uploading"
+                    );
+                    in_flight = Some(previous);
+                    continue;
+                }
+                progress.doing(Activity::Committing);
+                previous.wait(runtime)?;
+            }
             let dir = scratch.join("save");
             let _ = std::fs::remove_dir_all(&dir);
             trainer.save_checkpoint(&dir)?;
@@ -255,7 +284,13 @@ pub fn train_generation(
                 step: done,
                 generation,
             };
-            checkpoints::commit(runtime, client, progress, request)?;
+            let commit = InFlightCommit::start(runtime, client, progress, request)?;
+            if last {
+                progress.doing(Activity::Committing);
+                commit.wait(runtime)?;
+            } else {
+                in_flight = Some(commit);
+            }
         }
     }
     Ok(Ending::Done)

@@ -179,7 +179,8 @@ pub struct Moto {
     child: Child,
     /// `http://127.0.0.1:PORT`.
     pub endpoint: String,
-    port: u16,
+    /// Its loopback port.
+    pub port: u16,
     log: PathBuf,
 }
 
@@ -277,8 +278,13 @@ impl Moto {
 
     /// The store settings that point object_store at this server, as environment variables.
     pub fn env(&self) -> Vec<(String, String)> {
+        self.env_via(&self.endpoint)
+    }
+
+    /// The store settings that reach this server through `endpoint` (a proxy in front of it).
+    pub fn env_via(&self, endpoint: &str) -> Vec<(String, String)> {
         [
-            ("AWS_ENDPOINT", self.endpoint.as_str()),
+            ("AWS_ENDPOINT", endpoint),
             ("AWS_ALLOW_HTTP", "true"),
             ("AWS_ACCESS_KEY_ID", "testing"),
             ("AWS_SECRET_ACCESS_KEY", "testing"),
@@ -295,4 +301,28 @@ impl Drop for Moto {
         let _ = self.child.kill();
         let _ = self.child.wait();
     }
+}
+
+/// How many commits `job.json` under `checkpoints` knows for the current stage.
+pub fn commits_in_job_json(checkpoints: &Path) -> usize {
+    let Ok(bytes) = std::fs::read(checkpoints.join("job.json")) else {
+        return 0;
+    };
+    let state: Value = serde_json::from_slice(&bytes).unwrap_or_default();
+    let earlier = state["earlier_commits"].as_array().map_or(0, Vec::len);
+    earlier + usize::from(!state["last_commit"].is_null())
+}
+
+/// Every file under `dir`.
+pub fn walk(dir: &Path) -> Vec<PathBuf> {
+    let mut found = Vec::new();
+    for entry in std::fs::read_dir(dir).into_iter().flatten().flatten() {
+        let path = entry.path();
+        if path.is_dir() {
+            found.extend(walk(&path));
+        } else {
+            found.push(path);
+        }
+    }
+    found
 }

@@ -1,0 +1,218 @@
+//! Faults against what a job has committed and who may change it, injected into real
+//! coordinator and worker processes on loopback: a newest commit whose files changed, a `COMMIT.json` naming `../x` or
+//! `/etc/x`, and Leave and commit requests forged in a worker's name. Each prints
+//! `fault=... key=value` figures.
+
+mod common;
+
+use std::time::{Duration, Instant};
+
+use common::{Running, commits, commits_in_job_json, last_committed, signal, small_job, walk};
+use proto::v1::coordinator_client::CoordinatorClient;
+use proto::v1::{CheckpointCommit, LeaveRequest, StatusRequest};
+
+/// Runs a job to its second commit, freezes it, lets `tamper` change the newest commit's
+/// folder, and makes the group resume from it: the job must fall back to the commit before.
+/// Returns the job's folder for what else the caller checks.
+fn newest_commit_tampered_falls_back(
+    fault: &str,
+    tamper: impl FnOnce(&std::path::Path),
+) -> tempfile::TempDir {
+    let dir = tempfile::tempdir().unwrap();
+    let mut job = small_job(dir.path(), 2);
+    job.stage1_steps = 40;
+    let mut running = Running::start(job);
+    let checkpoints = running.job.checkpoint_dir();
+    let deadline = Instant::now() + Duration::from_secs(240);
+    while commits_in_job_json(&checkpoints) < 2 {
+        assert!(
+            Instant::now() < deadline,
+            "no second commit\n{}",
+            running.logs()
+        );
+        std::thread::sleep(Duration::from_millis(20));
+    }
+    // Freeze the group, change the newest commit, and make the group re-form so that it must
+    // resume from that commit.
+    for worker in &running.workers {
+        signal(worker, "STOP");
+    }
+    let newest = last_committed(&checkpoints);
+    tamper(std::path::Path::new(&newest));
+    running.workers[1].kill().unwrap();
+    signal(&running.workers[0], "CONT");
+    let tampered = Instant::now();
+    let report = running.finish(Duration::from_secs(300));
+    println!(
+        "fault={fault} finished_after_s={:.1} restarts={} fallbacks={}",
+        tampered.elapsed().as_secs_f64(),
+        report["restarts"],
+        report["fallbacks"]
+    );
+    assert_eq!(report["outcome"], "finished", "{report:#}");
+    assert_eq!(report["fallbacks"][0], newest.as_str(), "{report:#}");
+    assert!(
+        report["exclusions"].as_array().unwrap().len() <= 1,
+        "{report:#}"
+    );
+    dir
+}
+
+#[test]
+fn a_corrupt_newest_commit_falls_back_to_the_one_before() {
+    let _ = newest_commit_tampered_falls_back("corrupt_newest_commit", |newest| {
+        let weights = newest.join("model.safetensors");
+        let mut bytes = std::fs::read(&weights).unwrap();
+        let last = bytes.len() - 1;
+        bytes[last] ^= 0x5a;
+        std::fs::write(&weights, bytes).unwrap();
+    });
+}
+
+/// Renames the first file `COMMIT.json` lists to `name`, leaving everything else as it was.
+fn rename_in_manifest(newest: &std::path::Path, name: &str) {
+    let path = newest.join("COMMIT.json");
+    let mut manifest: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(&path).unwrap()).unwrap();
+    manifest["files"][0]["name"] = serde_json::json!(name);
+    std::fs::write(&path, serde_json::to_vec_pretty(&manifest).unwrap()).unwrap();
+}
+
+#[test]
+fn a_commit_json_naming_a_parent_folder_is_refused_and_nothing_is_written_outside() {
+    let dir = newest_commit_tampered_falls_back("commit_json_parent_path", |newest| {
+        // `../x` from a worker's download folder; the CRC stays that of the real file.
+        rename_in_manifest(newest, "../x");
+    });
+    let written: Vec<_> = walk(dir.path())
+        .into_iter()
+        .filter(|p| p.file_name().is_some_and(|n| n == "x"))
+        .collect();
+    assert!(written.is_empty(), "{written:?}");
+}
+
+#[test]
+fn a_commit_json_naming_an_absolute_path_is_refused() {
+    let _ = newest_commit_tampered_falls_back("commit_json_absolute_path", |newest| {
+        rename_in_manifest(newest, "/etc/x");
+    });
+    assert!(!std::path::Path::new("/etc/x").exists());
+}
+
+#[test]
+fn leave_and_commit_forged_in_a_workers_name_are_refused_and_the_job_goes_on() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut job = small_job(dir.path(), 2);
+    job.stage1_steps = 12;
+    let port = job.port;
+    let token = job.token();
+    let running = Running::start(job);
+    common::wait_for_first_commit(&running);
+    let runtime = tokio::runtime::Runtime::new().unwrap();
+    let (workers_before, refused) = runtime.block_on(async {
+        let channel = tonic::transport::Endpoint::from_shared(format!("http://127.0.0.1:{port}"))
+            .unwrap()
+            .connect()
+            .await
+            .unwrap();
+        let mut client =
+            CoordinatorClient::with_interceptor(channel, proto::AttachToken::new(token).unwrap());
+        let status = client.status(StatusRequest {}).await.unwrap().into_inner();
+        let mut refused = Vec::new();
+        // Worker ids are small numbers; try every one the job could have handed out.
+        for worker_id in 1..=4 {
+            for session in [String::new(), "0".repeat(32)] {
+                let leave = client
+                    .leave(LeaveRequest {
+                        worker_id,
+                        reason: "forged".into(),
+                        session: session.clone(),
+                    })
+                    .await
+                    .unwrap_err();
+                let commit = client
+                    .commit_checkpoint(CheckpointCommit {
+                        worker_id,
+                        generation: 1,
+                        phase: proto::v1::Phase::Stage1 as i32,
+                        step: 12,
+                        location: "/etc".into(),
+                        session,
+                    })
+                    .await
+                    .unwrap_err();
+                refused.push((leave.code(), commit.code()));
+            }
+        }
+        (status.workers, refused)
+    });
+    let report = running.finish(Duration::from_secs(300));
+    println!(
+        "fault=forged_leave_and_commit forged_requests={} workers_before={workers_before} restarts={}",
+        2 * refused.len(),
+        report["restarts"]
+    );
+    for (leave, commit) in refused {
+        assert!(
+            matches!(leave, tonic::Code::PermissionDenied | tonic::Code::NotFound),
+            "{leave:?}"
+        );
+        assert!(
+            matches!(
+                commit,
+                tonic::Code::PermissionDenied | tonic::Code::NotFound
+            ),
+            "{commit:?}"
+        );
+    }
+    assert_eq!(workers_before, 2);
+    assert_eq!(report["outcome"], "finished", "{report:#}");
+    assert_eq!(
+        report["restarts"], 0,
+        "no forged request ended a generation: {report:#}"
+    );
+    assert!(
+        commits(&report, 1).iter().all(|(_, l)| l != "/etc"),
+        "{report:#}"
+    );
+}
+
+#[test]
+fn a_replica_that_keeps_diverging_is_rolled_back_then_excluded_and_the_job_finishes() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut job = small_job(dir.path(), 3);
+    job.global_batch = 6;
+    job.micro_batch = 2;
+    job.stage1_steps = 24;
+    job.checkpoint_every = 4;
+    // Worker 2's accelerator goes bad at step 9: from then on its replica drifts each step.
+    job.worker_args = vec![
+        Vec::new(),
+        Vec::new(),
+        vec!["--drill-diverge-from-step".into(), "9".into()],
+    ];
+    let started = Instant::now();
+    let running = Running::start(job);
+    let report = running.finish(Duration::from_secs(400));
+    let mismatches = report["checksum_mismatches"].as_array().unwrap();
+    println!(
+        "fault=replica_diverges mismatches={} restarts={} exclusions={} seconds={:.1}",
+        mismatches.len(),
+        report["restarts"],
+        report["exclusions"].as_array().map_or(0, Vec::len),
+        started.elapsed().as_secs_f64()
+    );
+    assert_eq!(report["outcome"], "finished", "{report:#}");
+    assert!(mismatches.len() >= 2, "{report:#}");
+    assert!(report["restarts"].as_u64().unwrap() >= 2, "{report:#}");
+    let excluded = report["exclusions"].to_string();
+    assert!(excluded.contains("local-2"), "{report:#}");
+    assert!(
+        !excluded.contains("local-0") && !excluded.contains("local-1"),
+        "{report:#}"
+    );
+    // Every commit holds weights all good replicas agreed on: none after the drift began
+    // came from a group the drifting worker was in, which the rollbacks prove by the job
+    // finishing with its final step.
+    assert_eq!(commits(&report, 1).last().unwrap().0, 24, "{report:#}");
+}
