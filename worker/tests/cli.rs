@@ -29,6 +29,7 @@ fn help_lists_every_flag_with_its_default() {
             ("--tls-domain", None),
             ("--tls-cert", None),
             ("--tls-key", None),
+            ("--drill-diverge-from-step", None),
         ],
     );
     help::assert_flags(
