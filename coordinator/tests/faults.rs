@@ -1,8 +1,9 @@
 //! Faults injected into real coordinator and worker processes on loopback, each with its
 //! expected end state: frames deleted after indexing, a coordinator stopped while its workers
 //! long-poll, a SIGSTOPped worker, rank 0 SIGKILLed before the first commit, a late joiner, a
-//! SIGKILLed and restarted coordinator, a second coordinator on the same checkpoint URI, and a
-//! `job.json` that is not a job state. Each prints `fault=... key=value` figures.
+//! SIGKILLed and restarted coordinator, a second coordinator on the same checkpoint URI, a
+//! `job.json` that is not a job state, a final commit the store refuses, and a worker stuck in
+//! a data read while its heartbeats go on. Each prints `fault=... key=value` figures.
 
 mod common;
 
@@ -337,4 +338,76 @@ fn a_final_commit_the_store_refuses_is_retried_and_the_job_finishes_once_the_sto
     assert_eq!(report["outcome"], "finished", "{report:#}");
     assert!(report["restarts"].as_u64().unwrap() >= 1, "{report:#}");
     assert_eq!(commits(&report, 1).last().unwrap().0, 2, "{report:#}");
+}
+
+#[test]
+fn a_worker_stuck_in_a_data_read_while_its_heartbeats_go_on_is_removed_and_the_job_finishes() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut job = small_job(dir.path(), 2);
+    job.stage1_steps = 400;
+    job.checkpoint_every = 20;
+    job.stall_timeout_s = 3.0;
+    let running = Running::start(job);
+    wait_for_first_commit(&running);
+    // One sequence's frames become FIFOs: whoever opens one next blocks in the read, while its
+    // heartbeat task keeps answering.
+    let frames: Vec<_> = walk(&dir.path().join("data"))
+        .into_iter()
+        .filter(|p| p.extension().is_some_and(|e| e == "png" || e == "jpg"))
+        .collect();
+    let sequence = frames.iter().min().unwrap().parent().unwrap().to_path_buf();
+    let mut fifos = Vec::new();
+    for frame in frames
+        .iter()
+        .filter(|f| f.parent() == Some(sequence.as_path()))
+    {
+        let bytes = std::fs::read(frame).unwrap();
+        std::fs::remove_file(frame).unwrap();
+        let made = std::process::Command::new("mkfifo")
+            .arg(frame)
+            .status()
+            .unwrap();
+        assert!(made.success(), "mkfifo {}", frame.display());
+        fifos.push((frame.clone(), bytes));
+    }
+    let blocked = Instant::now();
+    let removal = "worker removed: no progress in its step";
+    wait_for_log(&running, removal, Duration::from_secs(120));
+    let removed_after = blocked.elapsed().as_secs_f64();
+    let log = std::fs::read_to_string(dir.path().join("coordinator.log")).unwrap();
+    let stuck = log
+        .split(removal)
+        .nth(1)
+        .and_then(|rest| rest.split("name=").nth(1))
+        .and_then(|rest| rest.split_whitespace().next())
+        .unwrap()
+        .to_string();
+    // The frames come back for the survivor; a reader still blocked in a FIFO gets its bytes.
+    for (frame, bytes) in fifos {
+        let pipe = std::fs::OpenOptions::new()
+            .read(true)
+            .write(true)
+            .open(&frame)
+            .unwrap();
+        let restored = frame.with_extension("restored");
+        std::fs::write(&restored, &bytes).unwrap();
+        std::fs::rename(&restored, &frame).unwrap();
+        std::thread::spawn(move || {
+            let mut pipe = pipe;
+            let _ = std::io::Write::write_all(&mut pipe, &bytes);
+        });
+    }
+    let report = running.finish(Duration::from_secs(300));
+    println!(
+        "fault=worker_stuck_in_read removed_after_s={removed_after:.1} finished_after_s={:.1} restarts={} stuck={stuck}",
+        blocked.elapsed().as_secs_f64(),
+        report["restarts"]
+    );
+    assert_eq!(report["outcome"], "finished", "{report:#}");
+    assert!(report["restarts"].as_u64().unwrap() >= 1, "{report:#}");
+    assert!(
+        report["exclusions"].to_string().contains(&stuck),
+        "{report:#}"
+    );
+    assert_eq!(commits(&report, 1).last().unwrap().0, 400, "{report:#}");
 }

@@ -1,13 +1,18 @@
 //! Faults against what a job has committed and who may change it, injected into real
 //! coordinator and worker processes on loopback: a newest commit whose files changed, a `COMMIT.json` naming `../x` or
-//! `/etc/x`, and Leave and commit requests forged in a worker's name. Each prints
-//! `fault=... key=value` figures.
+//! `/etc/x`, Leave and commit requests forged in a worker's name, a replica that keeps
+//! diverging, and rank 0 killed while its checkpoint uploads. Each prints `fault=... key=value`
+//! figures.
 
 mod common;
 
 use std::time::{Duration, Instant};
 
-use common::{Running, commits, commits_in_job_json, last_committed, signal, small_job, walk};
+use common::proxy::ThrottledProxy;
+use common::{
+    Moto, Running, commits, commits_in_job_json, last_committed, signal, small_job, walk,
+};
+use data::store::{DataRoot, StoreError};
 use proto::v1::coordinator_client::CoordinatorClient;
 use proto::v1::{CheckpointCommit, LeaveRequest, StatusRequest};
 
@@ -215,4 +220,67 @@ fn a_replica_that_keeps_diverging_is_rolled_back_then_excluded_and_the_job_finis
     // came from a group the drifting worker was in, which the rollbacks prove by the job
     // finishing with its final step.
     assert_eq!(commits(&report, 1).last().unwrap().0, 24, "{report:#}");
+}
+
+/// The text of worker `index`'s log.
+fn worker_log(running: &Running, index: usize) -> String {
+    std::fs::read_to_string(running.job.dir.join(format!("worker-{index}.log"))).unwrap_or_default()
+}
+
+#[test]
+fn rank_0_killed_while_uploading_leaves_no_commit_and_the_survivor_finishes() {
+    let dir = tempfile::tempdir().unwrap();
+    let moto = Moto::start(dir.path());
+    moto.create_bucket("xfactor");
+    // Uploads crawl through the proxy (a checkpoint is about 0.9 MB), so rank 0's second
+    // checkpoint is still on its way while it trains on.
+    let proxy = ThrottledProxy::start(moto.port, 100_000);
+    let mut job = small_job(dir.path(), 2);
+    job.stage1_steps = 400;
+    job.checkpoint_every = 20;
+    job.checkpoint_uri = Some("s3://xfactor/run/checkpoints".into());
+    job.store_env = moto.env_via(&proxy.endpoint);
+    let mut running = Running::start(job);
+    let deadline = Instant::now() + Duration::from_secs(300);
+    // Rank 0 is the worker that uploads; wait for its second upload and a step after it.
+    let (rank0, location, steps_while_uploading) = loop {
+        assert!(
+            Instant::now() < deadline,
+            "no second upload\n{}",
+            running.logs()
+        );
+        std::thread::sleep(Duration::from_millis(20));
+        let found = (0..2).find_map(|index| {
+            let log = worker_log(&running, index);
+            let (offset, line) = log.match_indices("uploading checkpoint").nth(1)?;
+            let after = &log[offset + line.len()..];
+            let location = after.split("location=").nth(1)?.split_whitespace().next()?;
+            let steps = after.matches("step done").count();
+            (steps > 0).then(|| (index, location.to_string(), steps))
+        });
+        if let Some(found) = found {
+            break found;
+        }
+    };
+    running.workers[rank0].kill().unwrap();
+    let killed = Instant::now();
+    proxy.set_rate(0);
+    let report = running.finish(Duration::from_secs(300));
+    println!(
+        "fault=rank0_sigkill_during_upload steps_while_uploading={steps_while_uploading} finished_after_s={:.1} restarts={}",
+        killed.elapsed().as_secs_f64(),
+        report["restarts"]
+    );
+    assert_eq!(report["outcome"], "finished", "{report:#}");
+    assert!(report["restarts"].as_u64().unwrap() >= 1, "{report:#}");
+    let stage1 = commits(&report, 1);
+    assert_eq!(stage1.last().unwrap().0, 400, "{report:#}");
+    assert!(stage1.iter().all(|(_, l)| *l != location), "{report:#}");
+    let runtime = tokio::runtime::Runtime::new().unwrap();
+    let half_written = DataRoot::open_with(&location, &moto.env()).unwrap();
+    let manifest = runtime.block_on(half_written.read("COMMIT.json"));
+    assert!(
+        matches!(manifest, Err(StoreError::NotFound { .. })),
+        "{location} must have no COMMIT.json: {manifest:?}"
+    );
 }

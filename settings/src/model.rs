@@ -137,6 +137,8 @@ impl XFactorConfig {
             ("patch_size", self.patch_size),
             ("width", self.width),
             ("num_heads", self.num_heads),
+            ("pose_layers", self.pose_layers),
+            ("render_layers", self.render_layers),
             ("pose_dim", self.pose_dim),
             ("global_tokens", self.global_tokens),
         ] {

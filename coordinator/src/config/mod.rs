@@ -11,7 +11,10 @@ use settings::objective::{ObjectiveSettings, Stage1Config, Stage2Config};
 use settings::optim::{AdamWConfig, Schedule};
 use settings::{Phase, XFactorConfig};
 
+mod model;
 mod values;
+
+pub use model::{ModelConfig, ModelPreset};
 
 pub use settings::DeviceChoice;
 pub use values::{NonEmpty, NonNegative, Positive};
@@ -147,48 +150,6 @@ impl AuthConfig {
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 #[error("auth.token_env names `{0}`, which is not set in the environment")]
 pub struct TokenNotSet(pub String);
-
-/// Model presets with the few overrides worth a YAML key.
-#[derive(Debug, Clone, PartialEq, Deserialize, Serialize)]
-#[serde(deny_unknown_fields)]
-pub struct ModelConfig {
-    /// `tiny`, `benchmark` or `paper`.
-    pub preset: ModelPreset,
-    /// Training resolution (defaults to the preset's; `tiny` defaults to 32).
-    #[serde(default)]
-    pub image_size: Option<usize>,
-    /// Round q/k/v to bfloat16 as the authors' mixed precision does.
-    #[serde(default)]
-    pub round_qkv_bf16: bool,
-}
-
-/// The model sizes a job can name.
-#[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, Serialize)]
-#[serde(rename_all = "snake_case")]
-pub enum ModelPreset {
-    /// Trains in seconds on a laptop CPU.
-    Tiny,
-    /// The benchmark model (64x64, width 256).
-    Benchmark,
-    /// The paper's model (305M parameters).
-    Paper,
-}
-
-impl ModelConfig {
-    /// The model configuration, checked.
-    pub fn resolve(&self) -> Result<XFactorConfig, settings::model::ConfigError> {
-        let mut config = match self.preset {
-            ModelPreset::Tiny => XFactorConfig::tiny(32),
-            ModelPreset::Benchmark => XFactorConfig::benchmark(),
-            ModelPreset::Paper => XFactorConfig::paper(),
-        };
-        if let Some(size) = self.image_size {
-            config.image_size = size;
-        }
-        config.round_qkv_bf16 = self.round_qkv_bf16;
-        config.validate().map(|()| config)
-    }
-}
 
 /// Either generated scenes or stored datasets.
 #[derive(Debug, Clone, PartialEq, Deserialize, Serialize)]
@@ -403,9 +364,12 @@ impl ClusterConfig {
     fn check(&self, text: &str) -> Result<(), String> {
         let at =
             |path: &[&str]| locate(text, path).map_or(String::new(), |l| format!(" at line {l}"));
-        self.model
-            .resolve()
-            .map_err(|e| format!("model: {e}{}", at(&["model"])))?;
+        self.model.resolve().map_err(|e| {
+            let key = self.model.key_at_fault(&e);
+            let line = locate(text, &["model", key])
+                .map_or_else(|| at(&["model"]), |l| format!(" at line {l}"));
+            format!("model.{key}: {e}{line}")
+        })?;
         let batches = [
             (
                 "stage1",

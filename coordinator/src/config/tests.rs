@@ -154,3 +154,39 @@ fn durations_and_counts_out_of_bounds_are_refused_with_key_and_line() {
     assert!(small.contains("16 workers"), "{small}");
     assert!(small.contains("line 14"), "{small}");
 }
+
+#[test]
+fn model_dimensions_override_the_preset_and_a_broken_rule_names_key_and_line() {
+    let wide = GOOD.replace(
+        "  image_size: 32\n",
+        "  image_size: 32\n  width: 48\n  num_heads: 3\n  pose_layers: 2\n  pose_dim: 16\n",
+    );
+    let config = ClusterConfig::from_yaml(&wide, "cluster.yaml").unwrap();
+    let model = config.model_config().unwrap();
+    assert_eq!(
+        (
+            model.width,
+            model.num_heads,
+            model.pose_layers,
+            model.pose_dim
+        ),
+        (48, 3, 2, 16)
+    );
+    assert_eq!(model.render_layers, XFactorConfig::tiny(32).render_layers);
+
+    let heads = error_of(&GOOD.replace("  image_size: 32\n", "  image_size: 32\n  num_heads: 3\n"));
+    assert!(heads.contains("model.num_heads"), "{heads}");
+    assert!(heads.contains("divisible by 4 (2D RoPE)"), "{heads}");
+    assert!(heads.contains("line 7"), "{heads}");
+
+    let patch = error_of(&GOOD.replace("  image_size: 32\n", "  image_size: 30\n"));
+    assert!(patch.contains("model.image_size"), "{patch}");
+    assert!(patch.contains("line 6"), "{patch}");
+
+    let layers = error_of(&GOOD.replace(
+        "  image_size: 32\n",
+        "  image_size: 32\n  render_layers: 0\n",
+    ));
+    assert!(layers.contains("model.render_layers"), "{layers}");
+    assert!(layers.contains("must be positive"), "{layers}");
+}

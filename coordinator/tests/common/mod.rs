@@ -9,6 +9,8 @@ use std::path::{Path, PathBuf};
 use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
+pub mod proxy;
+
 use coordinator::local::{LocalJob, free_port};
 use serde_json::Value;
 use trainer_core::flax::FlaxTensors;
