@@ -80,8 +80,9 @@ impl JobState {
         self.report.checksum_mismatches.len()
     }
 
-    /// The loss curve of `phase` as recorded by this coordinator: one row per step (the last
-    /// run of a step that was re-run after a restart), with loss and learning rate.
+    /// The loss curve of `phase` as recorded by this coordinator: one row per step, thinned to
+    /// evenly spaced steps past [`super::steps::CURVE_POINTS`] (the last run of a step that
+    /// was re-run after a restart), with loss and learning rate.
     pub fn curve(&self, phase: Phase) -> Curve {
         let rows = self
             .steps

@@ -4,7 +4,8 @@
 //! report costs the same at step 10 and at step 300000. Records are handed to the history
 //! writer once sealed (see [`StepLog::take_sealed`]) and then only the newest
 //! [`RETAINED_RECORDS`] stay in memory, for the report; the whole history is in the store.
-//! The loss curves keep one compact row per step.
+//! The loss curves keep at most [`CURVE_POINTS`] rows per phase, evenly spaced: the plot needs
+//! no more, and the history in the store has every step.
 
 use std::collections::{BTreeMap, HashMap};
 
@@ -15,8 +16,44 @@ use super::StepRecord;
 /// Sealed records kept in memory for the job report (`report.json`'s `steps`).
 pub const RETAINED_RECORDS: usize = 2000;
 
+/// Most rows a phase's loss curve keeps in memory; past it, every other row is dropped and the
+/// spacing doubles.
+pub const CURVE_POINTS: usize = 4096;
+
 /// One row of a loss curve: loss and learning rate.
 type CurveRow = (f32, f64);
+
+/// A loss curve thinned to at most [`CURVE_POINTS`] rows: the steps that are multiples of
+/// `stride`.
+#[derive(Debug, Clone)]
+struct ThinnedCurve {
+    rows: BTreeMap<u64, CurveRow>,
+    stride: u64,
+}
+
+impl Default for ThinnedCurve {
+    fn default() -> Self {
+        Self {
+            rows: BTreeMap::new(),
+            stride: 1,
+        }
+    }
+}
+
+impl ThinnedCurve {
+    /// Keeps `row` when `step` falls on the spacing (a re-run step replaces its row).
+    fn insert(&mut self, step: u64, row: CurveRow) {
+        if !step.is_multiple_of(self.stride) {
+            return;
+        }
+        self.rows.insert(step, row);
+        if self.rows.len() > CURVE_POINTS {
+            self.stride *= 2;
+            let stride = self.stride;
+            self.rows.retain(|step, _| step.is_multiple_of(stride));
+        }
+    }
+}
 
 /// Step records by `(phase, step, generation)`, the newest in memory, the rest in the store.
 #[derive(Debug, Default)]
@@ -27,8 +64,8 @@ pub struct StepLog {
     index: HashMap<(Phase, u64, u64), usize>,
     /// Records before this position went to the history writer.
     sealed: usize,
-    /// Loss and learning rate of every sealed step, by phase and step.
-    curves: HashMap<Phase, BTreeMap<u64, CurveRow>>,
+    /// Loss and learning rate of sealed steps, thinned, by phase.
+    curves: HashMap<Phase, ThinnedCurve>,
 }
 
 impl StepLog {
@@ -90,10 +127,14 @@ impl StepLog {
         &self.records
     }
 
-    /// Loss and learning rate of `phase`'s steps by step number: every sealed step, and the
-    /// records not sealed yet.
+    /// Loss and learning rate of `phase`'s steps by step number: the sealed steps on the
+    /// curve's spacing (every step until [`CURVE_POINTS`]), and the records not sealed yet.
     pub fn curve(&self, phase: Phase) -> BTreeMap<u64, CurveRow> {
-        let mut rows = self.curves.get(&phase).cloned().unwrap_or_default();
+        let mut rows = self
+            .curves
+            .get(&phase)
+            .map(|curve| curve.rows.clone())
+            .unwrap_or_default();
         for record in self.records[self.sealed..]
             .iter()
             .filter(|r| r.phase == phase)
@@ -127,9 +168,26 @@ mod tests {
         handed.extend(log.take_sealed(true).into_iter().map(|r| r.step));
         assert_eq!(handed, (0..steps).collect::<Vec<_>>());
         let curve = log.curve(Phase::Stage1);
-        assert_eq!(curve.len() as u64, steps);
+        assert!(curve.len() <= CURVE_POINTS + 2, "{}", curve.len());
         assert_eq!(curve[&(steps - 1)].0, (steps - 1) as f32);
         let last = log.retained().last().unwrap();
         assert_eq!((last.step, last.checksums.len()), (steps - 1, 1));
+    }
+
+    #[test]
+    fn a_curve_keeps_every_step_until_full_then_thins_evenly() {
+        let mut curve = ThinnedCurve::default();
+        for step in 0..CURVE_POINTS as u64 {
+            curve.insert(step, (step as f32, 0.0));
+        }
+        assert_eq!((curve.rows.len(), curve.stride), (CURVE_POINTS, 1));
+        let steps = 10 * CURVE_POINTS as u64;
+        for step in CURVE_POINTS as u64..steps {
+            curve.insert(step, (step as f32, 0.0));
+        }
+        // 40960 steps: spacing 16 leaves 2560 rows, the first and every 16th step.
+        assert_eq!(curve.stride, 16);
+        assert_eq!(curve.rows.len() as u64, steps / 16);
+        assert!(curve.rows.iter().all(|(&step, row)| step % 16 == 0 && row.0 == step as f32));
     }
 }
