@@ -1,8 +1,9 @@
 //! `evaluation`: XFactor's reason to exist — take the camera motion of one video and render it
 //! in another scene — and the measurements the paper uses to prove it works: reconstruction
 //! metrics, camera metrics, the transferability score (TPS) with pluggable pose oracles, and the
-//! pose probe.
+//! pose probe, and the comparison of several runs' reports.
 
+pub mod compare;
 pub mod error;
 pub mod figures;
 pub mod frames;

@@ -1,4 +1,4 @@
-//! `xfactor transfer|evaluate`: every flag in `--help` with its default, and bad values
+//! `xfactor transfer|evaluate|compare`: every flag in `--help` with its default, and bad values
 //! refused by the parser naming the flag.
 
 #[path = "../../test-support/help.rs"]
@@ -37,6 +37,15 @@ fn help_lists_every_flag_with_its_default() {
             ("--log-format", Some("human")),
         ],
     );
+    help::assert_flags(
+        XFACTOR,
+        &["compare"],
+        &[
+            ("--label", None),
+            ("--threshold", Some("20")),
+            ("--out", None),
+        ],
+    );
 }
 
 #[test]
@@ -53,6 +62,12 @@ fn bad_values_are_refused_naming_the_flag() {
         help::assert_refused(XFACTOR, &[&evaluate[..], bad].concat(), flag);
     }
     help::assert_refused(XFACTOR, &["evaluate", "--out", "o"], "--checkpoint");
+    help::assert_refused(XFACTOR, &["compare", "--out", "o"], "<RUN>");
+    help::assert_refused(
+        XFACTOR,
+        &["compare", "run", "--out", "o", "--threshold", "x"],
+        "--threshold",
+    );
     help::assert_refused(
         XFACTOR,
         &[

@@ -2,10 +2,13 @@
 //!
 //! Log lines on stderr set up by [`logging`] (with the shared `--log-format` flag), Prometheus
 //! series (gauges, counters, histograms) in a [`metrics::Registry`], served as text on
-//! `/metrics` by [`http::serve`], and loss curves written as CSV and drawn to PNG by
-//! [`curves`]. It knows nothing about the model or the job protocol: callers name their series.
+//! `/metrics` by [`http::serve`], loss curves written as CSV and drawn to PNG by [`curves`],
+//! and grouped bar charts of results by [`bars`]. It knows nothing about the model or the job
+//! protocol: callers name their series.
 
+pub mod bars;
 pub mod curves;
+mod draw;
 pub mod histogram;
 pub mod http;
 pub mod logging;

@@ -218,9 +218,10 @@ pub struct StageConfig<O> {
     /// LPIPS weights (safetensors from tools/convert_lpips_weights.py); needed when
     /// `lpips_weight` is positive.
     pub lpips_weights: Option<String>,
-    /// Learning-rate schedule (default: the paper's shape fitted to `steps`).
+    /// Learning-rate schedule (default: the `recipe` key's, XFactor's shape fitted to
+    /// `steps` unless it names another).
     pub schedule: Schedule,
-    /// AdamW settings (default: the paper's).
+    /// AdamW settings (default: the `recipe` key's).
     pub optimizer: AdamWConfig,
     /// Objective probabilities and augmentation (default: the paper's).
     pub objective: O,
@@ -239,6 +240,8 @@ struct RawStage<O> {
     #[serde(default)]
     lpips_weights: Option<NonEmpty>,
     #[serde(default)]
+    recipe: Recipe,
+    #[serde(default)]
     schedule: Option<Schedule>,
     #[serde(default)]
     optimizer: Option<AdamWConfig>,
@@ -246,6 +249,51 @@ struct RawStage<O> {
     objective: Option<O>,
     #[serde(default)]
     curriculum_steps: Option<Positive>,
+}
+
+/// Whose schedule and optimiser a stage takes where the YAML names none.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Deserialize, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Recipe {
+    /// XFactor's: warm-up over 4% of the steps from 1e-12 to 4e-4, cosine to 1e-4; AdamW
+    /// clipped at global norm 1.
+    #[default]
+    Xfactor,
+    /// E-RayZer's: warm-up over 3000 steps (at most the stage) from 0 to 4e-4, cosine to 0;
+    /// AdamW clipped at 1, and a step whose gradient norm before clipping exceeds 5 (or is
+    /// NaN) is skipped.
+    Erayzer,
+}
+
+/// E-RayZer's warm-up length.
+const ERAYZER_WARMUP_STEPS: u64 = 3000;
+
+/// E-RayZer's gradient-norm limit above which a step is skipped.
+const ERAYZER_SKIP_NORM: f64 = 5.0;
+
+impl Recipe {
+    fn schedule(self, steps: u64) -> Schedule {
+        match self {
+            Self::Xfactor => fitted_schedule(steps),
+            Self::Erayzer => Schedule {
+                initial_lr: 0.0,
+                peak_lr: 4e-4,
+                final_lr: 0.0,
+                warmup_steps: ERAYZER_WARMUP_STEPS.min(steps),
+                total_steps: steps,
+            },
+        }
+    }
+
+    fn optimizer(self) -> AdamWConfig {
+        match self {
+            Self::Xfactor => AdamWConfig::default(),
+            Self::Erayzer => AdamWConfig {
+                skip_norm_above: Some(ERAYZER_SKIP_NORM),
+                ..AdamWConfig::default()
+            },
+        }
+    }
 }
 
 /// The paper's warm-up share (4000 of 100000 steps), kept when a stage is shorter.
@@ -272,8 +320,10 @@ impl<'de, O: Deserialize<'de> + ObjectiveSettings> Deserialize<'de> for StageCon
             global_batch: raw.global_batch.0,
             micro_batch: raw.micro_batch.0,
             lpips_weights: raw.lpips_weights.map(|p| p.0),
-            schedule: raw.schedule.unwrap_or_else(|| fitted_schedule(raw.steps.0)),
-            optimizer: raw.optimizer.unwrap_or_default(),
+            schedule: raw
+                .schedule
+                .unwrap_or_else(|| raw.recipe.schedule(raw.steps.0)),
+            optimizer: raw.optimizer.unwrap_or_else(|| raw.recipe.optimizer()),
             objective,
             curriculum_steps: raw.curriculum_steps.map(|c| c.0),
         })

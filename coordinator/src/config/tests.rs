@@ -190,3 +190,46 @@ fn model_dimensions_override_the_preset_and_a_broken_rule_names_key_and_line() {
     assert!(layers.contains("model.render_layers"), "{layers}");
     assert!(layers.contains("must be positive"), "{layers}");
 }
+
+#[test]
+fn the_erayzer_recipe_sets_its_schedule_and_skip_and_explicit_keys_win() {
+    let erayzer = GOOD.replace(
+        "stage1:\n  steps: 10\n",
+        "stage1:\n  recipe: erayzer\n  steps: 10000\n",
+    );
+    let config = ClusterConfig::from_yaml(&erayzer, "cluster.yaml").unwrap();
+    let schedule = &config.stage1.schedule;
+    let close = |a: f64, b: f64| (a - b).abs() <= 1e-6 * b.abs().max(1e-9);
+    assert_eq!(schedule.learning_rate(0), 0.0);
+    assert!(close(schedule.learning_rate(1500), 2e-4));
+    assert!(close(schedule.learning_rate(3000), 4e-4));
+    assert!(close(schedule.learning_rate(6500), 2e-4));
+    assert!(schedule.learning_rate(10_000).abs() < 1e-12);
+    assert_eq!(config.stage1.optimizer.skip_norm_above, Some(5.0));
+    assert_eq!(config.stage1.optimizer.clip_norm, Some(1.0));
+    assert_eq!(
+        config.stage2.optimizer.skip_norm_above, None,
+        "stage 2 keeps XFactor's"
+    );
+
+    let short = GOOD.replace(
+        "stage1:\n  steps: 10\n",
+        "stage1:\n  recipe: erayzer\n  steps: 10\n",
+    );
+    let config = ClusterConfig::from_yaml(&short, "cluster.yaml").unwrap();
+    assert_eq!(config.stage1.schedule.warmup_steps, 10);
+
+    let explicit = erayzer.replace(
+        "  lpips_weight: 0\nstage2",
+        "  lpips_weight: 0\n  optimizer: {beta1: 0.9, beta2: 0.99, epsilon: 1.0e-8, weight_decay: 0.05, clip_norm: 1.0, skip_norm_above: null}\nstage2",
+    );
+    let config = ClusterConfig::from_yaml(&explicit, "cluster.yaml").unwrap();
+    assert_eq!(config.stage1.optimizer.skip_norm_above, None);
+    assert_eq!(config.stage1.schedule.peak_lr, 4e-4);
+
+    let unknown = error_of(&GOOD.replace(
+        "stage1:\n  steps: 10\n",
+        "stage1:\n  recipe: rayzer\n  steps: 10\n",
+    ));
+    assert!(unknown.contains("unknown variant `rayzer`"), "{unknown}");
+}

@@ -188,6 +188,11 @@ mod tests {
         // 40960 steps: spacing 16 leaves 2560 rows, the first and every 16th step.
         assert_eq!(curve.stride, 16);
         assert_eq!(curve.rows.len() as u64, steps / 16);
-        assert!(curve.rows.iter().all(|(&step, row)| step % 16 == 0 && row.0 == step as f32));
+        assert!(
+            curve
+                .rows
+                .iter()
+                .all(|(&step, row)| step % 16 == 0 && row.0 == step as f32)
+        );
     }
 }

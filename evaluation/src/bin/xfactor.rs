@@ -2,7 +2,8 @@
 //!
 //! `xfactor transfer` renders a scene along the camera motion of another video;
 //! `xfactor evaluate` runs the paper's evaluation of a checkpoint on generated scenes;
-//! `xfactor import-checkpoint` turns the authors' released clu checkpoint into ours.
+//! `xfactor import-checkpoint` turns the authors' released clu checkpoint into ours;
+//! `xfactor compare` lays several runs' evaluation reports side by side.
 
 use std::path::PathBuf;
 
@@ -38,6 +39,25 @@ enum Command {
     /// Imports the authors' released clu checkpoint (the `.flax` its `checkpoint` file names)
     /// as a checkpoint of ours: weights, optimiser state and LPIPS weights
     ImportCheckpoint(ImportArgs),
+    /// Lays the evaluation reports of several runs side by side (the paper's Table 3 layout):
+    /// compare.md and compare.png
+    Compare(CompareArgs),
+}
+
+#[derive(Debug, clap::Args)]
+struct CompareArgs {
+    /// Evaluation reports: `report.json` files or the folders holding them
+    #[arg(value_name = "RUN", required = true)]
+    runs: Vec<PathBuf>,
+    /// Row label of each run, in order (by default the run folder's name)
+    #[arg(long = "label", value_name = "NAME")]
+    labels: Vec<String>,
+    /// Threshold in degrees of the Rac, Tac and AUC columns (3, 5, 10, 15, 20 or 30)
+    #[arg(long, value_name = "DEGREES", default_value_t = 20)]
+    threshold: u32,
+    /// Folder compare.md and compare.png are written to (created if needed)
+    #[arg(long, value_name = "DIR")]
+    out: PathBuf,
 }
 
 #[derive(Debug, clap::Args)]
@@ -127,7 +147,16 @@ fn main() -> anyhow::Result<()> {
         Command::Transfer(args) => transfer(args),
         Command::Evaluate(args) => evaluate(args),
         Command::ImportCheckpoint(args) => import_checkpoint(args),
+        Command::Compare(args) => compare(args),
     }
+}
+
+fn compare(args: CompareArgs) -> anyhow::Result<()> {
+    evaluation::compare::check_threshold(args.threshold)?;
+    let runs = evaluation::compare::read_runs(&args.runs, &args.labels)?;
+    let table = evaluation::compare::write_comparison(&runs, args.threshold, &args.out)?;
+    print!("{table}");
+    Ok(())
 }
 
 fn transfer(args: TransferArgs) -> anyhow::Result<()> {
