@@ -287,3 +287,41 @@ fn kubernetes_probes_ask_grpc_health_on_the_serving_port() {
         "the worker listens where its probes ask"
     );
 }
+
+#[test]
+fn the_erayzer_example_mixes_seven_datasets_with_its_weights_and_schedule() {
+    let config =
+        ClusterConfig::from_file(&repository().join("deploy/examples/erayzer-mixture.yaml"))
+            .unwrap();
+    for phase in [settings::Phase::Stage1, settings::Phase::Stage2] {
+        let sampler = config.sampler(phase);
+        let weights: Vec<(&str, f64)> = sampler
+            .datasets
+            .iter()
+            .map(|d| (d.dataset.name(), d.weight))
+            .collect();
+        assert_eq!(
+            weights,
+            [
+                ("dl3dv", 1.0),
+                ("co3dv2", 0.25),
+                ("re10k", 0.5),
+                ("mvimgnet", 0.25),
+                ("arkitscenes", 0.5),
+                ("wildrgbd", 0.25),
+                ("acid", 0.5),
+            ]
+        );
+    }
+    for (schedule, optimizer, steps) in [
+        (&config.stage1.schedule, &config.stage1.optimizer, 100_000),
+        (&config.stage2.schedule, &config.stage2.optimizer, 200_000),
+    ] {
+        assert_eq!(
+            (schedule.initial_lr, schedule.peak_lr, schedule.final_lr),
+            (0.0, 4e-4, 0.0)
+        );
+        assert_eq!((schedule.warmup_steps, schedule.total_steps), (3000, steps));
+        assert_eq!(optimizer.skip_norm_above, Some(5.0));
+    }
+}

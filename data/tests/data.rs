@@ -48,6 +48,21 @@ async fn write_trees(roots: &[(DatasetKind, &DataRoot)]) {
             DatasetKind::Co3dv2 => {
                 files.extend((0..10).map(|i| format!("cup/1_2_3/images/frame{i:06}.png")));
             }
+            DatasetKind::Arkitscenes => {
+                files.extend(
+                    (0..10)
+                        .map(|i| format!("raw/Training/4106/lowres_wide/4106_{}.250.png", 8 + i)),
+                );
+                files.push("raw/Training/4106/lowres_wide.traj".into());
+            }
+            DatasetKind::Wildrgbd => {
+                files.extend((0..10).map(|i| format!("cup/scenes/scene_001/rgb/{i:05}.png")));
+                files.push("cup/scenes/scene_001/cam_poses.txt".into());
+            }
+            DatasetKind::Acid => {
+                files.extend((0..10).map(|i| format!("train/images/0a1b2c/{}.png", 1000 * i)));
+                files.push("train/cameras/0a1b2c.txt".into());
+            }
         }
         for (i, file) in files.iter().enumerate() {
             root.write(file, png(i as u8)).await.unwrap();
@@ -56,7 +71,7 @@ async fn write_trees(roots: &[(DatasetKind, &DataRoot)]) {
 }
 
 #[test]
-fn all_four_layouts_index_through_the_in_memory_store() {
+fn every_layout_indexes_through_the_in_memory_store() {
     let rt = runtime();
     let roots: Vec<(DatasetKind, DataRoot)> = DatasetKind::ALL
         .iter()
@@ -110,6 +125,40 @@ fn missing_empty_and_unreadable_roots_are_clear_errors() {
         error.contains("memory://wrong-layout") && error.contains("no sequence"),
         "{error}"
     );
+    // Frames one folder too shallow for each of E-RayZer's layouts: the error names the root
+    // and the layout it looked for.
+    for (kind, misplaced, expected) in [
+        (
+            DatasetKind::Arkitscenes,
+            "Training/4106/4106_8.250.png",
+            "lowres_wide/{video}_{seconds}.{ms}.png",
+        ),
+        (
+            DatasetKind::Wildrgbd,
+            "cup/scene_001/rgb/00000.png",
+            "{category}/scenes/{scene}/rgb",
+        ),
+        (
+            DatasetKind::Acid,
+            "train/0a1b2c/00000.png",
+            "{train|test}/images/{sequence}",
+        ),
+    ] {
+        let root = DataRoot::in_memory(&format!("memory://malformed-{}", kind.name()));
+        rt.block_on(async {
+            for i in 0..10 {
+                let path = misplaced
+                    .replace("00000", &format!("{i:05}"))
+                    .replace("8.250", &format!("{}.250", 8 + i));
+                root.write(&path, png(i as u8)).await.unwrap();
+            }
+        });
+        let error = rt.block_on(index(&root, kind)).unwrap_err().to_string();
+        assert!(
+            error.contains(&format!("malformed-{}", kind.name())) && error.contains(expected),
+            "{error}"
+        );
+    }
 }
 
 /// The example videos as `train/images/{target,transfer}/NNN.jpg` of an RE10K root.

@@ -3,7 +3,8 @@
 
 use serde::{Deserialize, Serialize};
 
-/// The four datasets of the aggregate training set.
+/// The datasets a job can train on: XFactor's four, and the three more of E-RayZer's
+/// seven-dataset mixture.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum DatasetKind {
@@ -15,11 +16,25 @@ pub enum DatasetKind {
     Mvimgnet,
     /// CO3Dv2.
     Co3dv2,
+    /// ARKitScenes (E-RayZer's mixture).
+    Arkitscenes,
+    /// WildRGB-D (E-RayZer's mixture).
+    Wildrgbd,
+    /// ACID, the Aerial Coastline Imagery Dataset (E-RayZer's mixture).
+    Acid,
 }
 
 impl DatasetKind {
     /// Every dataset, in a fixed order.
-    pub const ALL: [DatasetKind; 4] = [Self::Re10k, Self::Dl3dv, Self::Mvimgnet, Self::Co3dv2];
+    pub const ALL: [DatasetKind; 7] = [
+        Self::Re10k,
+        Self::Dl3dv,
+        Self::Mvimgnet,
+        Self::Co3dv2,
+        Self::Arkitscenes,
+        Self::Wildrgbd,
+        Self::Acid,
+    ];
 
     /// The name used in configs and logs.
     pub fn name(self) -> &'static str {
@@ -28,6 +43,9 @@ impl DatasetKind {
             Self::Dl3dv => "dl3dv",
             Self::Mvimgnet => "mvimgnet",
             Self::Co3dv2 => "co3dv2",
+            Self::Arkitscenes => "arkitscenes",
+            Self::Wildrgbd => "wildrgbd",
+            Self::Acid => "acid",
         }
     }
 }

@@ -177,7 +177,7 @@ pub struct GeneratedConfig {
 #[derive(Debug, Clone, PartialEq, Deserialize, Serialize)]
 #[serde(deny_unknown_fields)]
 pub struct DatasetConfig {
-    /// `re10k`, `dl3dv`, `mvimgnet` or `co3dv2`.
+    /// `re10k`, `dl3dv`, `mvimgnet`, `co3dv2`, `arkitscenes`, `wildrgbd` or `acid`.
     pub kind: DatasetKind,
     /// Root: a path, `file://`, `s3://`, `gs://` or `az://`.
     pub uri: NonEmpty,

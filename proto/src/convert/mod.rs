@@ -98,6 +98,9 @@ fn kind_to_wire(kind: DatasetKind) -> i32 {
         DatasetKind::Dl3dv => v1::DatasetKind::Dl3dv,
         DatasetKind::Mvimgnet => v1::DatasetKind::Mvimgnet,
         DatasetKind::Co3dv2 => v1::DatasetKind::Co3dv2,
+        DatasetKind::Arkitscenes => v1::DatasetKind::Arkitscenes,
+        DatasetKind::Wildrgbd => v1::DatasetKind::Wildrgbd,
+        DatasetKind::Acid => v1::DatasetKind::Acid,
     }) as i32
 }
 
@@ -107,6 +110,9 @@ fn kind_from_wire(value: i32, field: &'static str) -> Result<DatasetKind, Conver
         Ok(v1::DatasetKind::Dl3dv) => Ok(DatasetKind::Dl3dv),
         Ok(v1::DatasetKind::Mvimgnet) => Ok(DatasetKind::Mvimgnet),
         Ok(v1::DatasetKind::Co3dv2) => Ok(DatasetKind::Co3dv2),
+        Ok(v1::DatasetKind::Arkitscenes) => Ok(DatasetKind::Arkitscenes),
+        Ok(v1::DatasetKind::Wildrgbd) => Ok(DatasetKind::Wildrgbd),
+        Ok(v1::DatasetKind::Acid) => Ok(DatasetKind::Acid),
         Ok(v1::DatasetKind::Unspecified) | Err(_) => Err(ConvertError::Unknown { field, value }),
     }
 }

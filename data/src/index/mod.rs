@@ -1,4 +1,5 @@
-//! Indexers for the four dataset layouts, as the authors' release reads them:
+//! Indexers for the dataset layouts: XFactor's four as the authors' release reads them, and
+//! the three more of E-RayZer's mixture:
 //!
 //! - RE10K: `{split}/images/{sequence}/*` (split `train` / `test`); camera files
 //!   `{split}/cameras/{sequence}.txt` when present.
@@ -12,8 +13,11 @@
 //!   ([`CO3DV2_CATEGORIES`]), sequences whose name starts with a digit; the first 90% per
 //!   category train; `{category}/frame_annotations.jgz` when present.
 //!
-//! Frames are ordered by the number in their names; sequences shorter than [`MIN_FRAMES`] are
-//! dropped everywhere.
+//! - ACID: RE10K's layout.
+//! - ARKitScenes and WildRGB-D: see [`erayzer`].
+//!
+//! Frames are ordered by the number in their names (ARKitScenes: by timestamp); sequences
+//! shorter than [`MIN_FRAMES`] are dropped everywhere.
 
 use std::collections::{BTreeMap, BTreeSet};
 
@@ -22,6 +26,8 @@ use settings::data::DatasetKind;
 use crate::frame_order::sort_frames;
 use crate::manifest::{Manifest, Sequence, Split};
 use crate::store::{DataRoot, StoreError};
+
+mod erayzer;
 
 /// Sequences with fewer frames are dropped.
 pub const MIN_FRAMES: usize = 10;
@@ -98,11 +104,13 @@ pub enum IndexError {
     },
     /// Objects exist, but none forms a usable sequence of this layout.
     #[error(
-        "{dataset} root `{uri}` holds {objects} objects but no sequence of the {dataset} layout with at least {MIN_FRAMES} frames ({skipped} candidates skipped)"
+        "{dataset} root `{uri}` holds {objects} objects but no sequence of the {dataset} layout ({layout}) with at least {MIN_FRAMES} frames ({skipped} candidates skipped)"
     )]
     NoSequences {
         /// Dataset being indexed.
         dataset: &'static str,
+        /// Where the layout expects frames.
+        layout: &'static str,
         /// The root.
         uri: String,
         /// Objects listed.
@@ -119,6 +127,20 @@ pub struct Indexed {
     pub manifest: Manifest,
     /// `(sequence id, reason)` of every dropped candidate, for logs.
     pub skipped: Vec<(String, String)>,
+}
+
+/// Where `dataset`'s layout expects frames, for errors.
+pub fn layout(dataset: DatasetKind) -> &'static str {
+    match dataset {
+        DatasetKind::Re10k | DatasetKind::Acid => "{train|test}/images/{sequence}/*.png|jpg",
+        DatasetKind::Dl3dv => "training_256/{part}/{sequence}/images_8/* beside transforms.json",
+        DatasetKind::Mvimgnet => "{category}/{scene}/images/NNN.jpg",
+        DatasetKind::Co3dv2 => "{category}/{sequence}/images/frameNNNNNN.jpg",
+        DatasetKind::Arkitscenes => {
+            "{Training|Validation}/{video}/[{video}_frames/]lowres_wide/{video}_{seconds}.{ms}.png"
+        }
+        DatasetKind::Wildrgbd => "{category}/scenes/{scene}/rgb/NNNNN.png",
+    }
 }
 
 fn is_image(name: &str) -> bool {
@@ -156,6 +178,7 @@ pub(crate) fn check_indexed(
     if indexed.manifest.sequences.is_empty() {
         return Err(IndexError::NoSequences {
             dataset: dataset.name(),
+            layout: layout(dataset),
             uri: root.uri().to_string(),
             objects: paths.len(),
             skipped: indexed.skipped.len(),
@@ -170,12 +193,14 @@ pub(crate) fn check_indexed(
 /// Indexes a listing (paths relative to the dataset root) as `dataset`.
 pub fn index_paths(dataset: DatasetKind, paths: &[&str]) -> Indexed {
     let mut indexed = match dataset {
-        DatasetKind::Re10k => re10k(paths),
+        DatasetKind::Re10k | DatasetKind::Acid => re10k_layout(paths, dataset),
         DatasetKind::Dl3dv => dl3dv(paths),
         DatasetKind::Mvimgnet => category_layout(paths, dataset, |scene, name| {
             !scene.is_empty() && name.len() == 7 && name[..3].bytes().all(|b| b.is_ascii_digit())
         }),
         DatasetKind::Co3dv2 => co3dv2(paths),
+        DatasetKind::Arkitscenes => erayzer::arkitscenes(paths),
+        DatasetKind::Wildrgbd => erayzer::wildrgbd(paths),
     };
     let (kept, short): (Vec<Sequence>, Vec<Sequence>) = indexed
         .manifest
@@ -217,7 +242,8 @@ fn co3dv2(paths: &[&str]) -> Indexed {
     indexed
 }
 
-fn re10k(paths: &[&str]) -> Indexed {
+/// RE10K's layout, which ACID shares (the same camera files, the same split folders).
+fn re10k_layout(paths: &[&str], dataset: DatasetKind) -> Indexed {
     let mut frames: BTreeMap<(String, String), Vec<String>> = BTreeMap::new();
     let cameras: BTreeSet<&str> = paths
         .iter()
@@ -241,7 +267,7 @@ fn re10k(paths: &[&str]) -> Indexed {
             sort_frames(&mut files);
             let camera = format!("{split}/cameras/{sequence}.txt");
             Sequence {
-                dataset: DatasetKind::Re10k,
+                dataset,
                 split: if split == "train" {
                     Split::Train
                 } else {
@@ -347,6 +373,28 @@ fn category_layout(
             ));
         }
     }
+    let sequences = split_per_category(frames, dataset, |category, sequence| match dataset {
+        DatasetKind::Mvimgnet => sparse
+            .contains(&(category.to_string(), sequence.to_string()))
+            .then(|| format!("{category}/{sequence}/sparse")),
+        _ => annotations
+            .contains(category)
+            .then(|| format!("{category}/frame_annotations.jgz")),
+    });
+    Indexed {
+        manifest: Manifest { sequences },
+        skipped,
+    }
+}
+
+/// Sequences of `(category, sequence) -> frames`, frames sorted, with the first
+/// [`TRAIN_SHARE`] of each category's sequences (sorted by name) in the training split and
+/// the rest in the test split; `poses` names each sequence's camera file, if any.
+fn split_per_category(
+    frames: BTreeMap<(String, String), Vec<String>>,
+    dataset: DatasetKind,
+    poses: impl Fn(&str, &str) -> Option<String>,
+) -> Vec<Sequence> {
     let mut per_category: BTreeMap<String, Vec<(String, Vec<String>)>> = BTreeMap::new();
     for ((category, sequence), mut files) in frames {
         sort_frames(&mut files);
@@ -359,14 +407,6 @@ fn category_layout(
     for (category, members) in per_category {
         let train = (members.len() as f64 * TRAIN_SHARE) as usize;
         for (position, (sequence, files)) in members.into_iter().enumerate() {
-            let poses = match dataset {
-                DatasetKind::Mvimgnet => sparse
-                    .contains(&(category.clone(), sequence.clone()))
-                    .then(|| format!("{category}/{sequence}/sparse")),
-                _ => annotations
-                    .contains(&category)
-                    .then(|| format!("{category}/frame_annotations.jgz")),
-            };
             sequences.push(Sequence {
                 dataset,
                 split: if position < train {
@@ -374,16 +414,13 @@ fn category_layout(
                 } else {
                     Split::Test
                 },
+                poses: poses(&category, &sequence),
                 id: format!("{category}/{sequence}"),
                 frames: files,
-                poses,
             });
         }
     }
-    Indexed {
-        manifest: Manifest { sequences },
-        skipped,
-    }
+    sequences
 }
 
 #[cfg(test)]
@@ -421,6 +458,20 @@ mod tests {
             indexed.skipped,
             vec![("short".to_string(), "9 frames, fewer than 10".to_string())]
         );
+    }
+
+    #[test]
+    fn acid_shares_the_re10k_layout_under_its_own_name() {
+        let mut paths = frames("test/images/coast", 10, |i| format!("{i:05}.png"));
+        paths.push("test/cameras/coast.txt".to_string());
+        let indexed = index_strings(DatasetKind::Acid, &paths);
+        let seqs = &indexed.manifest.sequences;
+        assert_eq!(seqs.len(), 1);
+        assert_eq!(
+            (seqs[0].dataset, seqs[0].id.as_str(), seqs[0].split),
+            (DatasetKind::Acid, "coast", Split::Test)
+        );
+        assert_eq!(seqs[0].poses.as_deref(), Some("test/cameras/coast.txt"));
     }
 
     #[test]
