@@ -51,6 +51,10 @@ pub struct LocalJob {
     /// Evaluate stage 2's final weights after training (a small TPS, probe and
     /// reconstruction run on generated scenes).
     pub evaluate: bool,
+    /// Both stages' objective variant (`transfer`, `autoencode`); `None`: the default.
+    pub objective_variant: Option<String>,
+    /// The pose-latent size instead of the preset's.
+    pub pose_dim: Option<usize>,
     /// Port of the coordinator's `/metrics` endpoint; `None`: no endpoint.
     pub coordinator_metrics_port: Option<u16>,
     /// Ports of the workers' `/metrics` endpoints, by worker index; missing: no endpoint.
@@ -90,6 +94,8 @@ impl LocalJob {
             stall_timeout_s: 60.0,
             in_memory: false,
             evaluate: false,
+            objective_variant: None,
+            pose_dim: None,
             coordinator_metrics_port: None,
             worker_metrics_ports: Vec::new(),
             worker_args: Vec::new(),
@@ -178,6 +184,9 @@ impl LocalJob {
             "model:\n  preset: {}\n  image_size: {}",
             self.preset, self.image_size
         );
+        if let Some(pose_dim) = self.pose_dim {
+            let _ = writeln!(yaml, "  pose_dim: {pose_dim}");
+        }
         if self.in_memory {
             let _ = writeln!(
                 yaml,
@@ -197,6 +206,9 @@ impl LocalJob {
                 "stage{stage}:\n  steps: {steps}\n  global_batch: {}\n  micro_batch: {}\n  lpips_weight: 0\n  curriculum_steps: {steps}\n  schedule: {{initial_lr: 1.0e-4, peak_lr: 1.0e-3, final_lr: 1.0e-4, warmup_steps: 2, total_steps: {steps}}}",
                 self.global_batch, self.micro_batch
             );
+            if let Some(variant) = &self.objective_variant {
+                let _ = writeln!(yaml, "  objective: {{variant: {variant}}}");
+            }
         }
         let _ = writeln!(
             yaml,

@@ -325,3 +325,41 @@ fn the_erayzer_example_mixes_seven_datasets_with_its_weights_and_schedule() {
         assert_eq!(optimizer.skip_norm_above, Some(5.0));
     }
 }
+
+#[test]
+fn the_table_3_examples_differ_from_the_paper_only_in_objective_and_pose_size() {
+    use settings::objective::ObjectiveVariant;
+    let read = |name: &str| {
+        ClusterConfig::from_file(&repository().join("deploy/examples").join(name))
+            .unwrap_or_else(|e| panic!("{name}: {e}"))
+    };
+    let paper = read("paper.yaml");
+    for (name, variant, pose_dim) in [
+        ("table3-xfactor.yaml", ObjectiveVariant::Transfer, 256),
+        (
+            "table3-unconstrained.yaml",
+            ObjectiveVariant::Autoencode,
+            256,
+        ),
+        ("table3-bottleneck.yaml", ObjectiveVariant::Autoencode, 16),
+    ] {
+        let column = read(name);
+        assert_eq!(column.stage1.objective.variant, variant, "{name}");
+        assert_eq!(column.stage2.objective.variant, variant, "{name}");
+        let model = column.model_config().unwrap();
+        assert_eq!(model.pose_dim, pose_dim, "{name}");
+        let mut expected = paper.model_config().unwrap();
+        expected.pose_dim = pose_dim;
+        assert_eq!(model, expected, "{name}");
+        assert_eq!(column.stage1.schedule, paper.stage1.schedule, "{name}");
+        assert_eq!(column.stage2.schedule, paper.stage2.schedule, "{name}");
+        assert_eq!(
+            column.sampler(settings::Phase::Stage1),
+            paper.sampler(settings::Phase::Stage1)
+        );
+        assert_eq!(
+            (column.stage1.global_batch, column.stage1.steps),
+            (paper.stage1.global_batch, paper.stage1.steps)
+        );
+    }
+}

@@ -53,6 +53,22 @@ impl Default for AugmentConfig {
     }
 }
 
+/// The objective a stage trains, each a function of the same model parts (PoseEnc, Render)
+/// and batches.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum ObjectiveVariant {
+    /// XFactor's transferability objective: quadrant masks, the slot swap and self-decoding at
+    /// the stage's probabilities.
+    #[default]
+    Transfer,
+    /// Plain autoencoding, the paper's "Unconstrained" ablation (with `model.pose_dim: 16`,
+    /// its "Bottleneck"): PoseEnc reads the target's latent against the reference and Render
+    /// draws the target from the context with it; no mask, no swap, no self-decoding. The
+    /// draws are made as for `transfer` (the augmentation is the same) and then overridden.
+    Autoencode,
+}
+
 /// Stage-1 probabilities (defaults: the paper's) and the augmentation of PoseEnc's input.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields, default)]
@@ -65,6 +81,8 @@ pub struct Stage1Config {
     pub lpips_weight: f64,
     /// Photometric augmentation of PoseEnc's input.
     pub augment: AugmentConfig,
+    /// The objective (default: XFactor's).
+    pub variant: ObjectiveVariant,
 }
 
 impl Default for Stage1Config {
@@ -74,6 +92,7 @@ impl Default for Stage1Config {
             unmasked_probability: 0.05,
             lpips_weight: 0.5,
             augment: AugmentConfig::default(),
+            variant: ObjectiveVariant::Transfer,
         }
     }
 }
@@ -95,6 +114,8 @@ pub struct Stage2Config {
     /// Start Render from stage 1's weights too (the paper's text). Off by default: the release
     /// loads only PoseEnc from stage 1 and initialises Render afresh.
     pub render_from_stage1: bool,
+    /// The objective (default: XFactor's).
+    pub variant: ObjectiveVariant,
 }
 
 impl Default for Stage2Config {
@@ -106,6 +127,7 @@ impl Default for Stage2Config {
             lpips_weight: 0.5,
             augment: AugmentConfig::default(),
             render_from_stage1: false,
+            variant: ObjectiveVariant::Transfer,
         }
     }
 }

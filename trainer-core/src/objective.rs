@@ -1,5 +1,6 @@
 //! The two training objectives: stage 1 (stereo-monocular transferability) and stage 2
-//! (multi-view fine-tune). Both reduce to one computation over an [`ObjectiveBatch`]: PoseEnc on
+//! (multi-view fine-tune), each as XFactor's transfer objective or as the plain autoencoding
+//! of the paper's ablations ([`ObjectiveVariant`]: no mask, no swap, no self-decoding). Both reduce to one computation over an [`ObjectiveBatch`]: PoseEnc on
 //! `(reference, view)` pairs, slot copy and swap, Render of the clean context views,
 //! `L1 + w * LPIPS`. Stage 1 is the case of one context view.
 //!
@@ -9,7 +10,7 @@
 use burn::tensor::{Device, Tensor, TensorData};
 
 use data::Image;
-use settings::objective::{Stage1Config, Stage2Config};
+use settings::objective::{ObjectiveVariant, Stage1Config, Stage2Config};
 
 use crate::augment::{AugmentDraw, Augmentation};
 use crate::lpips::Lpips;
@@ -90,10 +91,15 @@ impl Stage1Objective for Stage1Config {
         let unmasked = stream.bernoulli(self.unmasked_probability);
         let pair = QuadrantMask::PAIRS[stream.below(6) as usize];
         let augmentation = self.augment.draw(&mut stream);
+        let transfer = self.variant == ObjectiveVariant::Transfer;
         Stage1Draw {
-            self_decode,
+            self_decode: transfer && self_decode,
             mask: QuadrantMask {
-                marked: if unmasked { [false; 4] } else { pair },
+                marked: if unmasked || !transfer {
+                    [false; 4]
+                } else {
+                    pair
+                },
             },
             augmentation,
         }
@@ -326,11 +332,16 @@ impl Stage2Objective for Stage2Config {
         let augmentations = (1..order.len())
             .map(|_| self.augment.draw(&mut stream))
             .collect();
+        let transfer = self.variant == ObjectiveVariant::Transfer;
         Stage2Draw {
             order,
-            self_decode_from: self_decode.then_some(replacement),
+            self_decode_from: (transfer && self_decode).then_some(replacement),
             mask: QuadrantMask {
-                marked: if unmasked { [false; 4] } else { pair },
+                marked: if unmasked || !transfer {
+                    [false; 4]
+                } else {
+                    pair
+                },
             },
             augmentations,
         }

@@ -8,7 +8,7 @@ use settings::data::{
     StoredDataset,
 };
 use settings::evaluation::{EvaluationSpec, OracleSpec, ProbeLoss, ProbeSpec};
-use settings::objective::{AugmentConfig, Stage1Config, Stage2Config};
+use settings::objective::{AugmentConfig, ObjectiveVariant, Stage1Config, Stage2Config};
 use settings::optim::{AdamWConfig, Schedule};
 use settings::train::{StageObjective, TrainConfig};
 use settings::{DeviceChoice, Phase, XFactorConfig};
@@ -182,13 +182,29 @@ fn common_to_wire(
     unmasked_probability: f64,
     lpips_weight: f64,
     augment: &AugmentConfig,
+    variant: ObjectiveVariant,
 ) -> Option<v1::ObjectiveSettings> {
     Some(v1::ObjectiveSettings {
         self_decode_probability,
         unmasked_probability,
         lpips_weight,
         augment: Some(augment_to_wire(augment)),
+        variant: match variant {
+            ObjectiveVariant::Transfer => v1::ObjectiveVariant::Transfer,
+            ObjectiveVariant::Autoencode => v1::ObjectiveVariant::Autoencode,
+        } as i32,
     })
+}
+
+fn variant_from_wire(value: i32) -> Result<ObjectiveVariant, ConvertError> {
+    match v1::ObjectiveVariant::try_from(value) {
+        Ok(v1::ObjectiveVariant::Transfer) => Ok(ObjectiveVariant::Transfer),
+        Ok(v1::ObjectiveVariant::Autoencode) => Ok(ObjectiveVariant::Autoencode),
+        Err(_) => Err(ConvertError::Unknown {
+            field: "train.objective.common.variant",
+            value,
+        }),
+    }
 }
 
 fn objective_to_wire(objective: &StageObjective) -> v1::train_settings::Objective {
@@ -199,6 +215,7 @@ fn objective_to_wire(objective: &StageObjective) -> v1::train_settings::Objectiv
                 o.unmasked_probability,
                 o.lpips_weight,
                 &o.augment,
+                o.variant,
             ),
         }),
         StageObjective::Stage2(o) => v1::train_settings::Objective::Stage2(v1::Stage2Objective {
@@ -207,6 +224,7 @@ fn objective_to_wire(objective: &StageObjective) -> v1::train_settings::Objectiv
                 o.unmasked_probability,
                 o.lpips_weight,
                 &o.augment,
+                o.variant,
             ),
             views: o.views as u64,
             render_from_stage1: o.render_from_stage1,
@@ -230,6 +248,7 @@ fn objective_from_wire(
                 unmasked_probability: c.unmasked_probability,
                 lpips_weight: c.lpips_weight,
                 augment,
+                variant: variant_from_wire(c.variant)?,
             })
         }
         v1::train_settings::Objective::Stage2(o) => {
@@ -241,6 +260,7 @@ fn objective_from_wire(
                 unmasked_probability: c.unmasked_probability,
                 lpips_weight: c.lpips_weight,
                 augment,
+                variant: variant_from_wire(c.variant)?,
             })
         }
     })

@@ -16,6 +16,14 @@ fn every_setting_survives_the_wire() {
             render_from_stage1: true,
             ..Stage2Config::default()
         }),
+        StageObjective::Stage1(Stage1Config {
+            variant: ObjectiveVariant::Autoencode,
+            ..Stage1Config::default()
+        }),
+        StageObjective::Stage2(Stage2Config {
+            variant: ObjectiveVariant::Autoencode,
+            ..Stage2Config::default()
+        }),
     ] {
         let train = TrainConfig {
             seed: 7,
