@@ -87,7 +87,12 @@ async fn run(args: &RunArgs) -> anyhow::Result<()> {
         .or_else(|| plan.config.metrics_listen.as_ref().map(|a| a.0.clone()));
     let service = CoordinatorService::new(plan).await?;
     if let Some(address) = metrics_address {
-        telemetry::http::serve(&address, service.metrics()).await?;
+        telemetry::http::serve(
+            &address,
+            service.metrics(),
+            telemetry::http::always_healthy(),
+        )
+        .await?;
     }
     let shutdown = async {
         let mut terminate =

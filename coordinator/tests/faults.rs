@@ -347,6 +347,7 @@ fn a_worker_stuck_in_a_data_read_while_its_heartbeats_go_on_is_removed_and_the_j
     job.stage1_steps = 400;
     job.checkpoint_every = 20;
     job.stall_timeout_s = 3.0;
+    job.worker_metrics_ports = vec![free_port().unwrap(), free_port().unwrap()];
     let running = Running::start(job);
     wait_for_first_commit(&running);
     // One sequence's frames become FIFOs: whoever opens one next blocks in the read, while its
@@ -382,6 +383,24 @@ fn a_worker_stuck_in_a_data_read_while_its_heartbeats_go_on_is_removed_and_the_j
         .and_then(|rest| rest.split_whitespace().next())
         .unwrap()
         .to_string();
+    // The stuck worker's /healthz turns 503 within a heartbeat or two of its removal, so a
+    // liveness probe would restart it.
+    let index: usize = stuck.trim_start_matches("local-").parse().unwrap();
+    let health =
+        std::net::SocketAddr::from(([127, 0, 0, 1], running.job.worker_metrics_ports[index]));
+    let runtime = tokio::runtime::Runtime::new().unwrap();
+    let deadline = Instant::now() + Duration::from_secs(10);
+    let (status, reason) = loop {
+        let answer = runtime
+            .block_on(telemetry::http::get(health, "/healthz"))
+            .unwrap();
+        if answer.0 == 503 || Instant::now() > deadline {
+            break answer;
+        }
+        std::thread::sleep(Duration::from_millis(50));
+    };
+    assert_eq!(status, 503, "{reason}");
+    assert!(reason.contains("removed"), "{reason}");
     // The frames come back for the survivor; a reader still blocked in a FIFO gets its bytes.
     for (frame, bytes) in fifos {
         let pipe = std::fs::OpenOptions::new()

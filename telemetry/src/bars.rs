@@ -5,7 +5,7 @@
 use image::{Rgb, RgbImage};
 
 use crate::curves::CurveError;
-use crate::draw::{PALETTE, line, swatch, text};
+use crate::draw::{PALETTE, encode_png, line, swatch, text};
 
 /// Values of several series over the same measures.
 #[derive(Debug, Clone, PartialEq)]
@@ -91,12 +91,7 @@ impl BarChart {
                 AXIS,
             );
         }
-        let mut bytes = Vec::new();
-        canvas.write_to(
-            &mut std::io::Cursor::new(&mut bytes),
-            image::ImageFormat::Png,
-        )?;
-        Ok(bytes)
+        encode_png(&canvas).map_err(CurveError::from)
     }
 }
 

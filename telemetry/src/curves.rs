@@ -6,7 +6,7 @@ use std::fmt::Write;
 
 use image::{Rgb, RgbImage};
 
-use crate::draw::{PALETTE, line, swatch, text};
+use crate::draw::{PALETTE, encode_png, line, swatch, text};
 
 /// Why a curve could not be drawn.
 #[derive(Debug, thiserror::Error)]
@@ -53,12 +53,7 @@ impl Curve {
             let top = MARGIN + column as u32 * (PANEL_HEIGHT + MARGIN);
             self.draw_panel(&mut canvas, column, top);
         }
-        let mut bytes = Vec::new();
-        canvas.write_to(
-            &mut std::io::Cursor::new(&mut bytes),
-            image::ImageFormat::Png,
-        )?;
-        Ok(bytes)
+        encode_png(&canvas).map_err(CurveError::from)
     }
 
     fn draw_panel(&self, canvas: &mut RgbImage, column: usize, top: u32) {

@@ -11,6 +11,16 @@ pub(crate) const PALETTE: [Rgb<u8>; 4] = [
     Rgb([148, 103, 189]),
 ];
 
+/// The canvas as PNG bytes.
+pub(crate) fn encode_png(canvas: &RgbImage) -> Result<Vec<u8>, image::ImageError> {
+    let mut bytes = Vec::new();
+    canvas.write_to(
+        &mut std::io::Cursor::new(&mut bytes),
+        image::ImageFormat::Png,
+    )?;
+    Ok(bytes)
+}
+
 /// Sets one pixel; points off the canvas are dropped.
 pub(crate) fn put(canvas: &mut RgbImage, (x, y): (i64, i64), colour: Rgb<u8>) {
     if x >= 0 && y >= 0 && (x as u32) < canvas.width() && (y as u32) < canvas.height() {

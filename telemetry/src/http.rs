@@ -33,9 +33,22 @@ pub enum HttpError {
     },
 }
 
-/// Binds `address` and serves `registry` there until the process ends. Returns the bound
-/// address (useful with port 0).
-pub async fn serve(address: &str, registry: Arc<Registry>) -> Result<SocketAddr, HttpError> {
+/// What `/healthz` asks: `Ok` answers 200 `ok`, `Err(reason)` answers 503 with the reason, so a
+/// liveness probe restarts a process that is up but no use (a worker stuck in its step).
+pub type HealthCheck = Arc<dyn Fn() -> Result<(), String> + Send + Sync>;
+
+/// A check that always answers `ok`: the process is healthy while it answers at all.
+pub fn always_healthy() -> HealthCheck {
+    Arc::new(|| Ok(()))
+}
+
+/// Binds `address` and serves `registry` on `/metrics` and `health` on `/healthz` there until
+/// the process ends. Returns the bound address (useful with port 0).
+pub async fn serve(
+    address: &str,
+    registry: Arc<Registry>,
+    health: HealthCheck,
+) -> Result<SocketAddr, HttpError> {
     let bind_error = |source| HttpError::Bind {
         address: address.to_string(),
         source,
@@ -51,9 +64,13 @@ pub async fn serve(address: &str, registry: Arc<Registry>) -> Result<SocketAddr,
             match listener.accept().await {
                 Ok((stream, peer)) => {
                     let registry = Arc::clone(&registry);
+                    let health = Arc::clone(&health);
                     tokio::spawn(async move {
-                        let answered =
-                            tokio::time::timeout(REQUEST_DEADLINE, answer(stream, &registry)).await;
+                        let answered = tokio::time::timeout(
+                            REQUEST_DEADLINE,
+                            answer(stream, &registry, health.as_ref()),
+                        )
+                        .await;
                         match answered {
                             Ok(Ok(())) => {}
                             Ok(Err(error)) => {
@@ -75,7 +92,11 @@ pub async fn serve(address: &str, registry: Arc<Registry>) -> Result<SocketAddr,
     Ok(bound)
 }
 
-async fn answer(mut stream: TcpStream, registry: &Registry) -> std::io::Result<()> {
+async fn answer(
+    mut stream: TcpStream,
+    registry: &Registry,
+    health: &(dyn Fn() -> Result<(), String> + Send + Sync),
+) -> std::io::Result<()> {
     let mut head = Vec::with_capacity(512);
     let mut buffer = [0u8; 1024];
     let read = async {
@@ -100,7 +121,14 @@ async fn answer(mut stream: TcpStream, registry: &Registry) -> std::io::Result<(
             "text/plain; version=0.0.4; charset=utf-8",
             registry.render(),
         ),
-        ("GET", "/healthz") => ("200 OK", "text/plain; charset=utf-8", "ok\n".to_string()),
+        ("GET", "/healthz") => match health() {
+            Ok(()) => ("200 OK", "text/plain; charset=utf-8", "ok\n".to_string()),
+            Err(reason) => (
+                "503 Service Unavailable",
+                "text/plain; charset=utf-8",
+                format!("{reason}\n"),
+            ),
+        },
         ("GET", _) => (
             "404 Not Found",
             "text/plain; charset=utf-8",
@@ -147,23 +175,37 @@ mod tests {
     async fn serves_metrics_and_health_and_refuses_the_rest() {
         let registry = Arc::new(Registry::new());
         registry.set(&Metric::gauge("xfactor_step", "Steps."), &[], 12.0);
-        let address = serve("127.0.0.1:0", Arc::clone(&registry))
+        let healthy = Arc::new(std::sync::atomic::AtomicBool::new(true));
+        let flag = Arc::clone(&healthy);
+        let health: HealthCheck = Arc::new(move || {
+            if flag.load(std::sync::atomic::Ordering::SeqCst) {
+                Ok(())
+            } else {
+                Err("removed by the coordinator".to_string())
+            }
+        });
+        let address = serve("127.0.0.1:0", Arc::clone(&registry), health)
             .await
             .expect("bind");
         let (status, body) = get(address, "/metrics").await.expect("scrape");
         assert_eq!(status, 200);
         assert!(body.contains("xfactor_step 12\n"), "{body}");
         assert_eq!(get(address, "/healthz").await.expect("probe").0, 200);
+        healthy.store(false, std::sync::atomic::Ordering::SeqCst);
+        assert_eq!(
+            get(address, "/healthz").await.expect("probe"),
+            (503, "removed by the coordinator\n".to_string())
+        );
         assert_eq!(get(address, "/nope").await.expect("404").0, 404);
     }
 
     #[tokio::test]
     async fn a_taken_port_is_named() {
         let registry = Arc::new(Registry::new());
-        let address = serve("127.0.0.1:0", Arc::clone(&registry))
+        let address = serve("127.0.0.1:0", Arc::clone(&registry), always_healthy())
             .await
             .expect("bind");
-        let error = serve(&address.to_string(), registry)
+        let error = serve(&address.to_string(), registry, always_healthy())
             .await
             .expect_err("port taken");
         assert!(error.to_string().contains(&address.to_string()), "{error}");

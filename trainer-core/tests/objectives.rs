@@ -35,13 +35,15 @@ fn tiny_config() -> XFactorConfig {
     XFactorConfig::tiny(SIDE)
 }
 
-#[test]
-fn stage1_loss_falls_with_adamw() {
+/// Trains the tiny model with `variant` for `steps` AdamW steps on eight sliding pairs (two
+/// shards of four) and returns the mean loss of the first five and of the last five steps.
+fn train_tiny(variant: ObjectiveVariant, pairs_seed: u64, steps: u64) -> (f32, f32) {
     let device = Device::flex().autodiff();
     let config = tiny_config();
     let mut model = XFactor::new(&config, 0, &device).unwrap();
     let objective = Stage1Config {
         lpips_weight: 0.0,
+        variant,
         ..Stage1Config::default()
     };
     let schedule = Schedule {
@@ -49,13 +51,13 @@ fn stage1_loss_falls_with_adamw() {
         peak_lr: 3e-3,
         final_lr: 1e-3,
         warmup_steps: 5,
-        total_steps: 300,
+        total_steps: steps,
     };
     let mut optimizer = AdamW::new(AdamWConfig::default());
-    let mut stream = Stream::new(&[42]);
+    let mut stream = Stream::new(&[pairs_seed]);
     let pairs: Vec<_> = (0..8).map(|_| sliding_pair(&mut stream)).collect();
     let mut losses = Vec::new();
-    for step in 0..300u64 {
+    for step in 0..steps {
         let (loss, grads) = sharded_gradients(&model, 2, |copy, shard| {
             let batch = objective.batch(
                 &pairs[shard * 4..shard * 4 + 4],
@@ -72,8 +74,13 @@ fn stage1_loss_falls_with_adamw() {
         model = updated;
         losses.push(loss);
     }
-    let start: f32 = losses[..5].iter().sum::<f32>() / 5.0;
-    let end: f32 = losses[295..].iter().sum::<f32>() / 5.0;
+    let mean = |window: &[f32]| window.iter().sum::<f32>() / window.len() as f32;
+    (mean(&losses[..5]), mean(&losses[losses.len() - 5..]))
+}
+
+#[test]
+fn stage1_loss_falls_with_adamw() {
+    let (start, end) = train_tiny(ObjectiveVariant::Transfer, 42, 300);
     println!("stage-1 L1: first five steps {start:.4}, last five {end:.4}");
     assert!(end < 0.7 * start, "loss went from {start} to {end}");
 }
@@ -213,43 +220,7 @@ fn autoencode_renders_the_other_frame_from_its_whole_image_latent() {
 
 #[test]
 fn autoencode_loss_falls_with_adamw() {
-    let device = Device::flex().autodiff();
-    let config = tiny_config();
-    let mut model = XFactor::new(&config, 0, &device).unwrap();
-    let objective = Stage1Config {
-        lpips_weight: 0.0,
-        variant: ObjectiveVariant::Autoencode,
-        ..Stage1Config::default()
-    };
-    let schedule = Schedule {
-        initial_lr: 1e-4,
-        peak_lr: 3e-3,
-        final_lr: 1e-3,
-        warmup_steps: 5,
-        total_steps: 150,
-    };
-    let mut optimizer = AdamW::new(AdamWConfig::default());
-    let mut stream = Stream::new(&[43]);
-    let pairs: Vec<_> = (0..8).map(|_| sliding_pair(&mut stream)).collect();
-    let mut losses = Vec::new();
-    for step in 0..150u64 {
-        let (loss, grads) = sharded_gradients(&model, 2, |copy, shard| {
-            let batch = objective.batch(
-                &pairs[shard * 4..shard * 4 + 4],
-                0,
-                step,
-                shard as u64 * 4,
-                config.patch_size,
-                &device,
-            );
-            objective_loss(copy, None, 0.0, &batch).total * 0.5
-        });
-        let (updated, _) = optimizer.step(model, &grads, schedule.learning_rate(step));
-        model = updated;
-        losses.push(loss);
-    }
-    let start: f32 = losses[..5].iter().sum::<f32>() / 5.0;
-    let end: f32 = losses[145..].iter().sum::<f32>() / 5.0;
+    let (start, end) = train_tiny(ObjectiveVariant::Autoencode, 43, 150);
     println!("autoencode L1: first five steps {start:.4}, last five {end:.4}");
     assert!(end < 0.7 * start, "loss went from {start} to {end}");
 }

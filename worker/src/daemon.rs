@@ -130,7 +130,7 @@ pub fn run(options: WorkerOptions) -> anyhow::Result<()> {
     };
     let collective = CollectiveService::default();
     let mailbox = collective.mailbox();
-    let address = runtime.block_on(serve_collective(&options, collective, &link))?;
+    let (address, health) = runtime.block_on(serve_collective(&options, collective, &link))?;
     let mut client = runtime.block_on(connect(
         &options.coordinator,
         &options.token,
@@ -141,11 +141,17 @@ pub fn run(options: WorkerOptions) -> anyhow::Result<()> {
         runtime.block_on(telemetry::http::serve(
             address,
             Arc::clone(&progress.metrics),
+            Progress::health(&progress),
         ))?;
     }
     let shutdown = shutdown::on_signals(&runtime);
     let interval = runtime.block_on(register(&mut client, &options, &address, &progress))?;
     runtime.spawn(heartbeats(client.clone(), progress.clone(), interval));
+    runtime.spawn(crate::health::mirror_membership(
+        health,
+        progress.clone(),
+        interval,
+    ));
     let mut after = 0;
     let mut failures = 0;
     let mut failure: Option<GenerationFailure> = None;
@@ -246,18 +252,21 @@ fn suspect_rank(error: &anyhow::Error) -> Option<u32> {
     }
 }
 
+/// Starts the collective service on `--listen`; returns the address peers dial and the
+/// reporter of its health service.
 async fn serve_collective(
     options: &WorkerOptions,
     service: CollectiveService,
     link: &Link,
-) -> anyhow::Result<String> {
+) -> anyhow::Result<(String, tonic_health::server::HealthReporter)> {
     let listener = tokio::net::TcpListener::bind(&options.listen)
         .await
         .with_context(|| format!("cannot listen on {}", options.listen))?;
     let bound: SocketAddr = listener.local_addr()?;
-    spawn_server(listener, service, link)?;
-    Ok(options
+    let health = spawn_server(listener, service, link)?;
+    let advertised = options
         .advertise
         .clone()
-        .unwrap_or_else(|| bound.to_string()))
+        .unwrap_or_else(|| bound.to_string());
+    Ok((advertised, health))
 }

@@ -1,7 +1,7 @@
 //! The worker's session with the coordinator: connecting, registering, heartbeats that carry
 //! its progress, waiting for assignments, and leaving.
 
-use std::sync::atomic::{AtomicI32, AtomicU64, Ordering};
+use std::sync::atomic::{AtomicBool, AtomicI32, AtomicU64, Ordering};
 use std::sync::{Arc, RwLock};
 use std::time::{Duration, Instant};
 
@@ -40,6 +40,9 @@ pub struct Progress {
     pub activity: AtomicI32,
     /// Set when the coordinator abandons the generation: the step in flight stops.
     pub cancel: watch::Sender<bool>,
+    /// Whether the coordinator's last heartbeat reply still knew this worker: false once it
+    /// was removed (silent, or stuck in its step while peers waited) until it registers again.
+    pub known: AtomicBool,
     /// The worker's Prometheus series.
     pub metrics: Arc<Registry>,
 }
@@ -55,8 +58,26 @@ impl Progress {
             step: AtomicU64::new(0),
             activity: AtomicI32::new(Activity::Idle as i32),
             cancel,
+            known: AtomicBool::new(false),
             metrics: Arc::new(Registry::new()),
         }
+    }
+
+    /// `/healthz`: healthy while the coordinator knows this worker (or it has not registered
+    /// yet); removed, it is not, so a liveness probe restarts a worker stuck in its step.
+    pub fn health(progress: &Arc<Self>) -> telemetry::http::HealthCheck {
+        let progress = Arc::clone(progress);
+        Arc::new(move || {
+            if progress.known.load(Ordering::SeqCst) || progress.worker_id() == 0 {
+                Ok(())
+            } else {
+                Err(format!(
+                    "the coordinator removed worker {} (no heartbeat, or no progress in step {} while its peers waited); it registers again once its step returns",
+                    progress.worker_id(),
+                    progress.step.load(Ordering::SeqCst)
+                ))
+            }
+        })
     }
 
     /// This worker's id.
@@ -162,6 +183,7 @@ pub async fn register(
         .map_err(|status| anyhow!("the coordinator refused registration: {}", status.message()))?
         .into_inner();
     progress.worker.store(reply.worker_id, Ordering::SeqCst);
+    progress.known.store(true, Ordering::SeqCst);
     *progress
         .session
         .write()
@@ -215,6 +237,7 @@ pub async fn heartbeats(mut client: Client, progress: Arc<Progress>, interval: D
             Ok(reply) => {
                 progress.metrics.add(&metrics::HEARTBEATS, &[], 1.0);
                 let reply = reply.into_inner();
+                progress.known.store(reply.known, Ordering::SeqCst);
                 if !reply.generation_current
                     && generation == progress.generation.load(Ordering::SeqCst)
                     && !*progress.cancel.borrow()

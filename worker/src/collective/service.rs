@@ -208,12 +208,13 @@ impl CollectiveService {
 
 /// Serves `service` on `listener` behind the job-token check (and TLS when `link` has it),
 /// with flow-control windows sized for megabyte chunks, and `grpc.health.v1` beside it
-/// without the check. Runs until the process ends.
+/// without the check. Runs until the process ends; the returned reporter changes what the
+/// health service says.
 pub fn spawn_server(
     listener: tokio::net::TcpListener,
     service: CollectiveService,
     link: &Link,
-) -> Result<(), super::CollectiveError> {
+) -> Result<tonic_health::server::HealthReporter, super::CollectiveError> {
     let server = tonic::service::interceptor::InterceptedService::new(
         proto::v1::collective_server::CollectiveServer::new(service)
             .max_decoding_message_size(proto::MAX_MESSAGE_BYTES),
@@ -225,9 +226,13 @@ pub fn spawn_server(
             .tls_config(tls.server.clone())
             .map_err(|e| super::CollectiveError::Tls(e.to_string()))?;
     }
+    let (reporter, health) = crate::health::collective_health();
+    let serving = reporter.clone();
     tokio::spawn(async move {
+        serving
+            .set_serving::<proto::v1::collective_server::CollectiveServer<CollectiveService>>()
+            .await;
         // Beside the token-checked service, not behind it: probes carry no token.
-        let health = crate::health::collective_health().await;
         builder
             .initial_stream_window_size(Some(16 * 1024 * 1024))
             .initial_connection_window_size(Some(32 * 1024 * 1024))
@@ -238,5 +243,5 @@ pub fn spawn_server(
             .serve_with_incoming(tokio_stream::wrappers::TcpListenerStream::new(listener))
             .await
     });
-    Ok(())
+    Ok(reporter)
 }
