@@ -10,6 +10,7 @@ use data::Split;
 use data::scenes::SceneConfig;
 use data::store::DataRoot;
 use data::synthetic::SyntheticDataset;
+use settings::objective::ObjectiveVariant;
 
 /// Size of a local job.
 #[derive(Debug, Clone)]
@@ -51,8 +52,9 @@ pub struct LocalJob {
     /// Evaluate stage 2's final weights after training (a small TPS, probe and
     /// reconstruction run on generated scenes).
     pub evaluate: bool,
-    /// Both stages' objective variant (`transfer`, `autoencode`); `None`: the default.
-    pub objective_variant: Option<String>,
+    /// The objective variant of stage 1, and of stage 2 unless it is a stage-1-only one;
+    /// `None`: the default.
+    pub objective_variant: Option<ObjectiveVariant>,
     /// The pose-latent size instead of the preset's.
     pub pose_dim: Option<usize>,
     /// Port of the coordinator's `/metrics` endpoint; `None`: no endpoint.
@@ -206,8 +208,12 @@ impl LocalJob {
                 "stage{stage}:\n  steps: {steps}\n  global_batch: {}\n  micro_batch: {}\n  lpips_weight: 0\n  curriculum_steps: {steps}\n  schedule: {{initial_lr: 1.0e-4, peak_lr: 1.0e-3, final_lr: 1.0e-4, warmup_steps: 2, total_steps: {steps}}}",
                 self.global_batch, self.micro_batch
             );
-            if let Some(variant) = &self.objective_variant {
-                let _ = writeln!(yaml, "  objective: {{variant: {variant}}}");
+            if let Some(variant) = self
+                .objective_variant
+                .filter(|v| stage == 1 || !v.stage1_only())
+            {
+                let name = serde_json::to_string(&variant).unwrap_or_default();
+                let _ = writeln!(yaml, "  objective: {{variant: {}}}", name.trim_matches('"'));
             }
         }
         let _ = writeln!(

@@ -1,6 +1,7 @@
-//! The paper's Table 3 in miniature: three tiny variants (XFactor's transfer objective, plain
-//! autoencoding, autoencoding through a smaller pose latent) trained and evaluated through the
-//! local harness, then laid side by side by `xfactor compare`.
+//! The paper's Table 3 in miniature: four tiny variants (XFactor's transfer objective, plain
+//! autoencoding, autoencoding through a smaller pose latent, and an extra view for PoseEnc
+//! and Render) trained and evaluated through the local harness, then laid side by side by
+//! `xfactor compare`.
 
 mod common;
 
@@ -9,24 +10,30 @@ use std::process::Command;
 use std::time::{Duration, Instant};
 
 use common::{Running, small_job};
+use settings::objective::ObjectiveVariant;
 
 #[test]
-fn three_variants_train_evaluate_and_compare_in_one_table() {
+fn four_variants_train_evaluate_and_compare_in_one_table() {
     let dir = tempfile::tempdir().unwrap();
     let started = Instant::now();
     let mut evaluations: Vec<PathBuf> = Vec::new();
     let mut stage1_weights = Vec::new();
     for (name, variant, pose_dim) in [
-        ("xfactor", "transfer", None),
-        ("unconstrained", "autoencode", None),
-        ("bottleneck", "autoencode", Some(4)),
+        ("xfactor", ObjectiveVariant::Transfer, None),
+        ("unconstrained", ObjectiveVariant::Autoencode, None),
+        ("bottleneck", ObjectiveVariant::Autoencode, Some(4)),
+        (
+            "extra-view",
+            ObjectiveVariant::ExtraViewEncoderDecoder,
+            None,
+        ),
     ] {
         let mut job = small_job(&dir.path().join(name), 1);
         job.stage1_steps = 6;
         job.stage2_steps = 2;
         job.checkpoint_every = 6;
         job.evaluate = true;
-        job.objective_variant = Some(variant.into());
+        job.objective_variant = Some(variant);
         job.pose_dim = pose_dim;
         let report = Running::start(job).finish(Duration::from_secs(300));
         assert_eq!(report["outcome"], "finished", "{name}: {report:#}");
@@ -66,6 +73,8 @@ fn three_variants_train_evaluate_and_compare_in_one_table() {
             "Unconstrained",
             "--label",
             "Bottleneck",
+            "--label",
+            "ExtraView",
         ])
         .arg("--out")
         .arg(&out)
@@ -78,12 +87,17 @@ fn three_variants_train_evaluate_and_compare_in_one_table() {
         String::from_utf8_lossy(&output.stderr)
     );
     println!(
-        "variants=3 seconds={:.1}\n{table}",
+        "variants=4 seconds={:.1}\n{table}",
         started.elapsed().as_secs_f64()
     );
-    for (row, (label, pose_dim)) in [("XFactor", 8), ("Unconstrained", 8), ("Bottleneck", 4)]
-        .iter()
-        .enumerate()
+    for (row, (label, pose_dim)) in [
+        ("XFactor", 8),
+        ("Unconstrained", 8),
+        ("Bottleneck", 4),
+        ("ExtraView", 8),
+    ]
+    .iter()
+    .enumerate()
     {
         let line = format!("| {} | {label} | C=32 h=2 L=1+1 Cp={pose_dim} |", row + 1);
         assert!(table.contains(&line), "{line} missing from\n{table}");

@@ -67,6 +67,31 @@ pub enum ObjectiveVariant {
     /// draws the target from the context with it; no mask, no swap, no self-decoding. The
     /// draws are made as for `transfer` (the augmentation is the same) and then overridden.
     Autoencode,
+    /// Stage 1 only: the transfer objective with one more context view given to Render.
+    /// Samples have three frames in window order: the reference, the extra view, the target;
+    /// PoseEnc reads the extra view and the target each against the reference, in its own
+    /// pair, as stage 2 does.
+    ExtraViewDecoder,
+    /// Stage 1 only: as `extra_view_decoder`, and PoseEnc sees the extra view too: it reads the
+    /// reference, the extra view and the target in one multi-view pass (one augmentation for
+    /// all three).
+    ExtraViewEncoderDecoder,
+}
+
+impl ObjectiveVariant {
+    /// Frames per stage-1 sample: 3 for the extra-view variants, else the pair.
+    pub fn stage1_frames(self) -> usize {
+        match self {
+            Self::ExtraViewDecoder | Self::ExtraViewEncoderDecoder => 3,
+            Self::Transfer | Self::Autoencode => 2,
+        }
+    }
+
+    /// Whether the variant only makes sense in stage 1 (stage 2 has several context views
+    /// already).
+    pub fn stage1_only(self) -> bool {
+        self.stage1_frames() == 3
+    }
 }
 
 /// Stage-1 probabilities (defaults: the paper's) and the augmentation of PoseEnc's input.

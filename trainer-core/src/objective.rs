@@ -65,6 +65,9 @@ pub struct Stage1Draw {
     pub mask: QuadrantMask,
     /// Photometric augmentation of both frames as PoseEnc sees them.
     pub augmentation: Augmentation,
+    /// The extra-view variants' augmentation of the pair `(reference, extra view)`, drawn
+    /// after everything else so the other draws are those of a pair sample.
+    pub extra_augmentation: Augmentation,
 }
 
 /// The draws and batches of stage 1, computed from its settings.
@@ -82,6 +85,18 @@ pub trait Stage1Objective {
         patch_size: usize,
         device: &Device,
     ) -> ObjectiveBatch;
+    /// The extra-view variants' batch from samples of three frames (reference, extra view,
+    /// target; the frame indices are not used): Render gets the reference and the extra view
+    /// as context; PoseEnc reads pairs, or all three at once for `extra_view_encoder_decoder`.
+    fn batch_with_extra_view(
+        &self,
+        samples: &[Vec<(u64, Image)>],
+        seed: u64,
+        step: u64,
+        first_sample: u64,
+        patch_size: usize,
+        device: &Device,
+    ) -> ObjectiveBatch;
 }
 
 impl Stage1Objective for Stage1Config {
@@ -91,7 +106,8 @@ impl Stage1Objective for Stage1Config {
         let unmasked = stream.bernoulli(self.unmasked_probability);
         let pair = QuadrantMask::PAIRS[stream.below(6) as usize];
         let augmentation = self.augment.draw(&mut stream);
-        let transfer = self.variant == ObjectiveVariant::Transfer;
+        let extra_augmentation = self.augment.draw(&mut stream);
+        let transfer = self.variant != ObjectiveVariant::Autoencode;
         Stage1Draw {
             self_decode: transfer && self_decode,
             mask: QuadrantMask {
@@ -102,6 +118,7 @@ impl Stage1Objective for Stage1Config {
                 },
             },
             augmentation,
+            extra_augmentation,
         }
     }
 
@@ -126,12 +143,43 @@ impl Stage1Objective for Stage1Config {
         }
         builder.finish(device)
     }
+
+    fn batch_with_extra_view(
+        &self,
+        samples: &[Vec<(u64, Image)>],
+        seed: u64,
+        step: u64,
+        first_sample: u64,
+        patch_size: usize,
+        device: &Device,
+    ) -> ObjectiveBatch {
+        let mut builder = BatchBuilder::new(3, patch_size);
+        builder.joint_encoder = self.variant == ObjectiveVariant::ExtraViewEncoderDecoder;
+        for (offset, frames) in samples.iter().enumerate() {
+            let draw = self.draw(seed, step, first_sample + offset as u64);
+            let (reference, extra) = (&frames[0].1, &frames[1].1);
+            let target = if draw.self_decode {
+                reference
+            } else {
+                &frames[2].1
+            };
+            builder.push(
+                &[reference, extra, target],
+                &draw.mask,
+                &[draw.extra_augmentation, draw.augmentation],
+            );
+        }
+        builder.finish(device)
+    }
 }
 
 /// Collects samples of `views` ordered frames (reference first, target last) into host buffers.
 struct BatchBuilder {
     views: usize,
     patch_size: usize,
+    /// PoseEnc reads all `views` frames in one pass (with the first augmentation) instead of
+    /// one `(reference, view)` pair per view.
+    joint_encoder: bool,
     shape: Option<(usize, usize)>,
     samples: usize,
     encoder_pairs: Vec<f32>,
@@ -147,6 +195,7 @@ impl BatchBuilder {
         Self {
             views,
             patch_size,
+            joint_encoder: false,
             shape: None,
             samples: 0,
             encoder_pairs: Vec::new(),
@@ -165,12 +214,20 @@ impl BatchBuilder {
         self.shape = Some((reference.height, reference.width));
         let grid = reference.height / self.patch_size.max(1);
         let patch_mask = mask.patch_mask(grid);
-        for (view, augmentation) in frames[1..].iter().zip(augmentations) {
-            self.encoder_pairs
-                .extend_from_slice(&augmentation.apply(reference).pixels);
-            self.encoder_pairs
-                .extend_from_slice(&augmentation.apply(view).pixels);
+        if self.joint_encoder {
+            for frame in frames {
+                self.encoder_pairs
+                    .extend_from_slice(&augmentations[0].apply(frame).pixels);
+            }
             self.encoder_mask.extend_from_slice(&patch_mask);
+        } else {
+            for (view, augmentation) in frames[1..].iter().zip(augmentations) {
+                self.encoder_pairs
+                    .extend_from_slice(&augmentation.apply(reference).pixels);
+                self.encoder_pairs
+                    .extend_from_slice(&augmentation.apply(view).pixels);
+                self.encoder_mask.extend_from_slice(&patch_mask);
+            }
         }
         for frame in &frames[..self.views - 1] {
             self.context.extend_from_slice(&frame.pixels);
@@ -186,13 +243,19 @@ impl BatchBuilder {
         let (height, width) = self.shape.unwrap_or((0, 0));
         let (b, contexts) = (self.samples, self.views - 1);
         let tokens = self.mask.len() / b.max(1);
+        let (encoder_samples, encoder_views) = if self.joint_encoder {
+            (b, self.views)
+        } else {
+            (b * contexts, 2)
+        };
         ObjectiveBatch {
             encoder_pairs: upload(
                 self.encoder_pairs,
-                [b * contexts, 2, height, width, 3],
+                [encoder_samples, encoder_views, height, width, 3],
                 device,
             ),
-            encoder_mask: upload(self.encoder_mask, [b * contexts, tokens], device),
+            encoder_mask: upload(self.encoder_mask, [encoder_samples, tokens], device),
+            joint_encoder: self.joint_encoder,
             context: upload(self.context, [b, contexts, height, width, 3], device),
             target: upload(self.target, [b, height, width, 3], device),
             mask: upload(self.mask, [b, tokens], device),
@@ -209,10 +272,14 @@ fn upload<const D: usize>(values: Vec<f32>, shape: [usize; D], device: &Device) 
 /// last).
 #[derive(Debug, Clone)]
 pub struct ObjectiveBatch {
-    /// Augmented `(reference, view_i)` pairs for `i = 1..V`, `(B * (V-1), 2, H, W, 3)`.
+    /// Augmented `(reference, view_i)` pairs for `i = 1..V`, `(B * (V-1), 2, H, W, 3)`; with
+    /// `joint_encoder`, all `V` views of each sample, `(B, V, H, W, 3)`.
     pub encoder_pairs: Tensor<5>,
-    /// The sample's patch mask repeated for each of its pairs, `(B * (V-1), T)`.
+    /// The sample's patch mask repeated for each of its pairs, `(B * (V-1), T)`; with
+    /// `joint_encoder`, `(B, T)`.
     pub encoder_mask: Tensor<2>,
+    /// PoseEnc reads each sample's views in one pass rather than pair by pair.
+    pub joint_encoder: bool,
     /// The un-augmented context views (reference first), `(B, V-1, H, W, 3)`.
     pub context: Tensor<5>,
     /// The frame to reconstruct, `(B, H, W, 3)`.
@@ -252,13 +319,17 @@ pub fn objective_loss(
     batch: &ObjectiveBatch,
 ) -> ObjectiveLoss {
     let [b, contexts, _, _, _] = batch.context.dims();
-    let pair_latents = model
+    let encoded = model
         .pose_enc
         .forward_masked(batch.encoder_pairs.clone(), batch.encoder_mask.clone());
-    let [_, _, _, pose_dim] = pair_latents.dims();
-    let views = pair_latents
-        .narrow(1, 1, 1)
-        .reshape([b, contexts, 2, pose_dim]);
+    let [_, _, _, pose_dim] = encoded.dims();
+    // The latent of every view after the reference: from the joint pass directly, or from
+    // the second view of each pair.
+    let views = if batch.joint_encoder {
+        encoded.narrow(1, 1, contexts)
+    } else {
+        encoded.narrow(1, 1, 1).reshape([b, contexts, 2, pose_dim])
+    };
     let latents = Tensor::cat(vec![views.zeros_like().narrow(1, 0, 1), views], 1);
     let slot0 = latents.clone().narrow(2, 0, 1);
     let slot1 = latents.narrow(2, 1, 1);
@@ -332,7 +403,7 @@ impl Stage2Objective for Stage2Config {
         let augmentations = (1..order.len())
             .map(|_| self.augment.draw(&mut stream))
             .collect();
-        let transfer = self.variant == ObjectiveVariant::Transfer;
+        let transfer = self.variant != ObjectiveVariant::Autoencode;
         Stage2Draw {
             order,
             self_decode_from: (transfer && self_decode).then_some(replacement),

@@ -253,10 +253,42 @@ impl Trainer {
                 let (begin, end) = bounds(shard);
                 let offset = first + begin as u64;
                 match (&self.config.objective, &samples) {
-                    (StageObjective::Stage1(objective), Samples::Pairs(pairs)) => Ok(objective
-                        .batch(&pairs[begin..end], seed, step, offset, patch, &self.device)),
+                    (StageObjective::Stage1(objective), Samples::Pairs(pairs))
+                        if objective.variant.stage1_frames() == 2 =>
+                    {
+                        Ok(objective.batch(
+                            &pairs[begin..end],
+                            seed,
+                            step,
+                            offset,
+                            patch,
+                            &self.device,
+                        ))
+                    }
+                    (StageObjective::Stage1(objective), Samples::Views(views))
+                        if objective.variant.stage1_frames() == 3 =>
+                    {
+                        Ok(objective.batch_with_extra_view(
+                            &views[begin..end],
+                            seed,
+                            step,
+                            offset,
+                            patch,
+                            &self.device,
+                        ))
+                    }
                     (StageObjective::Stage2(objective), Samples::Views(views)) => Ok(objective
                         .batch(&views[begin..end], seed, step, offset, patch, &self.device)),
+                    (StageObjective::Stage1(objective), Samples::Pairs(_)) => {
+                        Err(TrainError::WrongSamples {
+                            expected: if objective.variant.stage1_frames() == 3 {
+                                "three-frame stage-1"
+                            } else {
+                                "stage-1"
+                            },
+                            found: "pair",
+                        })
+                    }
                     (StageObjective::Stage1(_), Samples::Views(_)) => {
                         Err(TrainError::WrongSamples {
                             expected: "stage-1",

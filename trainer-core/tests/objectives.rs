@@ -31,12 +31,30 @@ fn sliding_pair(stream: &mut Stream) -> (Image, Image) {
     (frame(0.0), frame(shift))
 }
 
+/// The same slide as [`sliding_pair`] with a frame halfway: reference, extra view, target.
+fn sliding_triple(stream: &mut Stream) -> Vec<(u64, Image)> {
+    let phases: Vec<f64> = (0..6)
+        .map(|_| stream.uniform_in(0.0, std::f64::consts::TAU))
+        .collect();
+    let shift = stream.uniform_in(-3.0, 3.0);
+    [0.0, 0.5, 1.0]
+        .into_iter()
+        .enumerate()
+        .map(|(i, share)| {
+            (
+                i as u64,
+                common::sliding_frame(&phases, shift * share, SIDE),
+            )
+        })
+        .collect()
+}
+
 fn tiny_config() -> XFactorConfig {
     XFactorConfig::tiny(SIDE)
 }
 
-/// Trains the tiny model with `variant` for `steps` AdamW steps on eight sliding pairs (two
-/// shards of four) and returns the mean loss of the first five and of the last five steps.
+/// Trains the tiny model with `variant` for `steps` AdamW steps on eight sliding pairs (or,
+/// for the extra-view variants, triples; two shards of four) and returns the mean loss of the first five and of the last five steps.
 fn train_tiny(variant: ObjectiveVariant, pairs_seed: u64, steps: u64) -> (f32, f32) {
     let device = Device::flex().autodiff();
     let config = tiny_config();
@@ -56,17 +74,31 @@ fn train_tiny(variant: ObjectiveVariant, pairs_seed: u64, steps: u64) -> (f32, f
     let mut optimizer = AdamW::new(AdamWConfig::default());
     let mut stream = Stream::new(&[pairs_seed]);
     let pairs: Vec<_> = (0..8).map(|_| sliding_pair(&mut stream)).collect();
+    let triples: Vec<_> = (0..8).map(|_| sliding_triple(&mut stream)).collect();
     let mut losses = Vec::new();
     for step in 0..steps {
         let (loss, grads) = sharded_gradients(&model, 2, |copy, shard| {
-            let batch = objective.batch(
-                &pairs[shard * 4..shard * 4 + 4],
-                0,
-                step,
-                shard as u64 * 4,
-                config.patch_size,
-                &device,
-            );
+            let (first, patch) = (shard * 4, config.patch_size);
+            let batch = if variant.stage1_frames() == 3 {
+                let shard_triples = &triples[first..first + 4];
+                objective.batch_with_extra_view(
+                    shard_triples,
+                    0,
+                    step,
+                    first as u64,
+                    patch,
+                    &device,
+                )
+            } else {
+                objective.batch(
+                    &pairs[first..first + 4],
+                    0,
+                    step,
+                    first as u64,
+                    patch,
+                    &device,
+                )
+            };
             objective_loss(copy, None, 0.0, &batch).total * 0.5
         });
         let (updated, report) = optimizer.step(model, &grads, schedule.learning_rate(step));
@@ -223,4 +255,110 @@ fn autoencode_loss_falls_with_adamw() {
     let (start, end) = train_tiny(ObjectiveVariant::Autoencode, 43, 150);
     println!("autoencode L1: first five steps {start:.4}, last five {end:.4}");
     assert!(end < 0.7 * start, "loss went from {start} to {end}");
+}
+
+#[test]
+fn extra_view_variants_render_from_two_context_views_as_by_hand() {
+    let device = Device::flex();
+    let config = tiny_config();
+    let model = XFactor::new(&config, 3, &device).unwrap();
+    let mut stream = Stream::new(&[11]);
+    let samples: Vec<_> = (0..3).map(|_| sliding_triple(&mut stream)).collect();
+    let stack = |index: usize| {
+        let pixels: Vec<f32> = samples
+            .iter()
+            .flat_map(|s| s[index].1.pixels.iter().copied())
+            .collect();
+        Tensor::<4>::from_data(TensorData::new(pixels, [3, SIDE, SIDE, 3]), &device)
+    };
+    let (reference, extra, target) = (stack(0), stack(1), stack(2));
+    let tokens = config.tokens_per_view();
+    let no_mask = Tensor::<2>::zeros([3, tokens], &device);
+    for (variant, joint) in [
+        (ObjectiveVariant::ExtraViewDecoder, false),
+        (ObjectiveVariant::ExtraViewEncoderDecoder, true),
+    ] {
+        // No mask, no self-decoding, no augmentation: what is left is the variant's own
+        // wiring of PoseEnc and Render.
+        let objective = Stage1Config {
+            unmasked_probability: 1.0,
+            self_decode_probability: 0.0,
+            augment: settings::objective::AugmentConfig {
+                jitter_probability: 0.0,
+                blur_probability: 0.0,
+                ..Default::default()
+            },
+            variant,
+            ..Stage1Config::default()
+        };
+        let batch = objective.batch_with_extra_view(&samples, 0, 0, 0, config.patch_size, &device);
+        let expected_encoder = if joint { [3, 3] } else { [6, 2] };
+        assert_eq!(
+            batch.encoder_pairs.dims()[..2],
+            expected_encoder,
+            "{variant:?}"
+        );
+        let loss = objective_loss(&model, None, 0.0, &batch)
+            .l1
+            .into_scalar::<f32>();
+        // By hand: the extra view's and the target's latents against the reference (slot 0
+        // of an unmasked read), the reference's zero, Render from reference and extra view.
+        let (extra_latent, target_latent) = if joint {
+            let all = Tensor::stack::<5>(vec![reference.clone(), extra.clone(), target.clone()], 1);
+            let latents = model.pose_enc.forward_masked(all, no_mask.clone());
+            (
+                latents.clone().narrow(1, 1, 1).narrow(2, 0, 1),
+                latents.narrow(1, 2, 1).narrow(2, 0, 1),
+            )
+        } else {
+            let read = |view: &Tensor<4>| {
+                let pair = Tensor::stack::<5>(vec![reference.clone(), view.clone()], 1);
+                model
+                    .pose_enc
+                    .forward_masked(pair, no_mask.clone())
+                    .narrow(1, 1, 1)
+                    .narrow(2, 0, 1)
+            };
+            (read(&extra), read(&target))
+        };
+        let both_slots = |latent: Tensor<4>| Tensor::cat(vec![latent.clone(), latent], 2);
+        let extra_slots = both_slots(extra_latent);
+        let latents = Tensor::cat(
+            vec![
+                extra_slots.zeros_like(),
+                extra_slots,
+                both_slots(target_latent),
+            ],
+            1,
+        );
+        let context = Tensor::stack::<5>(vec![reference.clone(), extra.clone()], 1);
+        let prediction = model.render.forward(
+            context,
+            PoseLatents::PerSegment(latents),
+            Some(no_mask.clone()),
+        );
+        let by_hand = (target.clone() - prediction)
+            .abs()
+            .mean()
+            .into_scalar::<f32>();
+        assert!(
+            (loss - by_hand).abs() <= 1e-6,
+            "{variant:?}: {loss} vs {by_hand}"
+        );
+    }
+}
+
+#[test]
+fn extra_view_losses_fall_with_adamw() {
+    for (variant, seed) in [
+        (ObjectiveVariant::ExtraViewDecoder, 44),
+        (ObjectiveVariant::ExtraViewEncoderDecoder, 45),
+    ] {
+        let (start, end) = train_tiny(variant, seed, 150);
+        println!("{variant:?} L1: first five steps {start:.4}, last five {end:.4}");
+        assert!(
+            end < 0.7 * start,
+            "{variant:?}: loss went from {start} to {end}"
+        );
+    }
 }

@@ -420,6 +420,13 @@ impl ClusterConfig {
                 .map_or_else(|| at(&["model"]), |l| format!(" at line {l}"));
             format!("model.{key}: {e}{line}")
         })?;
+        if self.stage2.objective.variant.stage1_only() {
+            return Err(format!(
+                "stage2.objective.variant: {:?} adds a context view to stage 1's pairs; stage 2 has `views` context views already{}",
+                self.stage2.objective.variant,
+                at(&["stage2", "objective", "variant"])
+            ));
+        }
         let batches = [
             (
                 "stage1",
@@ -557,6 +564,8 @@ impl ClusterConfig {
         };
         if stage == 2 {
             sampler.frames = self.stage2.objective.views;
+        } else {
+            sampler.frames = self.stage1.objective.variant.stage1_frames();
         }
         let curriculum = if stage == 1 {
             self.stage1.curriculum_steps

@@ -233,3 +233,19 @@ fn the_erayzer_recipe_sets_its_schedule_and_skip_and_explicit_keys_win() {
     ));
     assert!(unknown.contains("unknown variant `rayzer`"), "{unknown}");
 }
+
+#[test]
+fn extra_view_variants_draw_three_frames_in_stage_1_and_are_refused_in_stage_2() {
+    let extra = GOOD.replace(
+        "  lpips_weight: 0\nstage2",
+        "  lpips_weight: 0\n  objective: {variant: extra_view_encoder_decoder}\nstage2",
+    );
+    let config = ClusterConfig::from_yaml(&extra, "cluster.yaml").unwrap();
+    assert_eq!(config.sampler(Phase::Stage1).frames, 3);
+    assert_eq!(config.sampler(Phase::Stage2).frames, 6);
+    let refused = error_of(&GOOD.replace(
+        "  lpips_weight: 0\ncheckpoint",
+        "  lpips_weight: 0\n  objective: {variant: extra_view_decoder}\ncheckpoint",
+    ));
+    assert!(refused.contains("stage2.objective.variant"), "{refused}");
+}

@@ -192,6 +192,10 @@ fn common_to_wire(
         variant: match variant {
             ObjectiveVariant::Transfer => v1::ObjectiveVariant::Transfer,
             ObjectiveVariant::Autoencode => v1::ObjectiveVariant::Autoencode,
+            ObjectiveVariant::ExtraViewDecoder => v1::ObjectiveVariant::ExtraViewDecoder,
+            ObjectiveVariant::ExtraViewEncoderDecoder => {
+                v1::ObjectiveVariant::ExtraViewEncoderDecoder
+            }
         } as i32,
     })
 }
@@ -200,6 +204,10 @@ fn variant_from_wire(value: i32) -> Result<ObjectiveVariant, ConvertError> {
     match v1::ObjectiveVariant::try_from(value) {
         Ok(v1::ObjectiveVariant::Transfer) => Ok(ObjectiveVariant::Transfer),
         Ok(v1::ObjectiveVariant::Autoencode) => Ok(ObjectiveVariant::Autoencode),
+        Ok(v1::ObjectiveVariant::ExtraViewDecoder) => Ok(ObjectiveVariant::ExtraViewDecoder),
+        Ok(v1::ObjectiveVariant::ExtraViewEncoderDecoder) => {
+            Ok(ObjectiveVariant::ExtraViewEncoderDecoder)
+        }
         Err(_) => Err(ConvertError::Unknown {
             field: "train.objective.common.variant",
             value,

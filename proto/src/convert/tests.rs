@@ -24,6 +24,14 @@ fn every_setting_survives_the_wire() {
             variant: ObjectiveVariant::Autoencode,
             ..Stage2Config::default()
         }),
+        StageObjective::Stage1(Stage1Config {
+            variant: ObjectiveVariant::ExtraViewDecoder,
+            ..Stage1Config::default()
+        }),
+        StageObjective::Stage1(Stage1Config {
+            variant: ObjectiveVariant::ExtraViewEncoderDecoder,
+            ..Stage1Config::default()
+        }),
     ] {
         let train = TrainConfig {
             seed: 7,
