@@ -16,6 +16,12 @@ use object_store::{
 /// How often a failed read is retried (cloud stores also retry inside object_store).
 const READ_ATTEMPTS: u32 = 3;
 
+/// Longest wait for one read of an object before it counts as a failed attempt: a read that
+/// never returns (a hung network mount, a FIFO with no writer) must not hang a step, least of
+/// all a lone worker's, which has no peer waiting on it to expose the stall. Three attempts
+/// later the frame is skipped and counted like a missing one.
+pub const READ_TIMEOUT: Duration = Duration::from_secs(120);
+
 /// Why a dataset root could not be opened, listed or read.
 #[derive(Debug, thiserror::Error)]
 pub enum StoreError {
@@ -79,6 +85,7 @@ pub struct DataRoot {
     store: Arc<dyn ObjectStore>,
     prefix: Path,
     uri: String,
+    read_timeout: Duration,
 }
 
 /// One object under a root.
@@ -119,6 +126,7 @@ impl DataRoot {
                 store: Arc::new(store),
                 prefix: Path::default(),
                 uri: uri.to_string(),
+                read_timeout: READ_TIMEOUT,
             });
         }
         let url = url::Url::parse(uri).map_err(|e| open_error(e.into()))?;
@@ -143,6 +151,7 @@ impl DataRoot {
             store: Arc::from(store),
             prefix,
             uri: uri.to_string(),
+            read_timeout: READ_TIMEOUT,
         })
     }
 
@@ -177,7 +186,14 @@ impl DataRoot {
             store,
             prefix: Path::from(prefix),
             uri: label.to_string(),
+            read_timeout: READ_TIMEOUT,
         }
+    }
+
+    /// The same root with another limit on each read attempt (default [`READ_TIMEOUT`]).
+    pub fn with_read_timeout(mut self, limit: Duration) -> Self {
+        self.read_timeout = limit;
+        self
     }
 
     /// An empty in-memory root.
@@ -248,7 +264,19 @@ impl DataRoot {
         let mut attempt = 0;
         loop {
             attempt += 1;
-            let result = async { self.store.get(&location).await?.bytes().await }.await;
+            let attempt_read = async { self.store.get(&location).await?.bytes().await };
+            let result = tokio::time::timeout(self.read_timeout, attempt_read)
+                .await
+                .unwrap_or_else(|_| {
+                    Err(object_store::Error::Generic {
+                        store: "read",
+                        source: format!(
+                            "no answer within {:.1} s",
+                            self.read_timeout.as_secs_f64()
+                        )
+                        .into(),
+                    })
+                });
             match result {
                 Ok(bytes) => return Ok(bytes.to_vec()),
                 Err(object_store::Error::NotFound { .. }) => {

@@ -337,3 +337,44 @@ fn manifest_caches_are_reused_until_the_listing_changes() {
     assert!(matches!(stale, CacheError::Stale { .. }), "{stale}");
     assert!(stale.to_string().contains("memory://cached"), "{stale}");
 }
+
+#[test]
+fn a_read_that_never_returns_times_out_and_names_the_object() {
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(1)
+        .enable_all()
+        .build()
+        .unwrap();
+    let dir = tempfile::tempdir().unwrap();
+    let fifo = dir.path().join("stuck.png");
+    let made = std::process::Command::new("mkfifo")
+        .arg(&fifo)
+        .status()
+        .unwrap();
+    assert!(made.success());
+    let root = DataRoot::open(dir.path().to_str().unwrap())
+        .unwrap()
+        .with_read_timeout(std::time::Duration::from_millis(200));
+    let started = std::time::Instant::now();
+    let error = rt.block_on(root.read("stuck.png")).unwrap_err();
+    let seconds = started.elapsed().as_secs_f64();
+    let mut chain = error.to_string();
+    let mut cause = std::error::Error::source(&error);
+    while let Some(inner) = cause {
+        chain.push_str(&format!(": {inner}"));
+        cause = inner.source();
+    }
+    assert!(chain.contains("`stuck.png`"), "{chain}");
+    assert!(chain.contains("no answer within 0.2 s"), "{chain}");
+    // Three attempts of 0.2 s and the back-off between them, not forever.
+    assert!(seconds < 10.0, "{seconds} s");
+    // The blocked reads give up once a writer comes and goes; do not wait for them.
+    drop(
+        std::fs::OpenOptions::new()
+            .read(true)
+            .write(true)
+            .open(&fifo)
+            .unwrap(),
+    );
+    rt.shutdown_background();
+}
