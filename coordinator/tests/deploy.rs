@@ -342,6 +342,7 @@ fn the_table_3_examples_differ_from_the_paper_only_in_objective_and_pose_size() 
             256,
         ),
         ("table3-bottleneck.yaml", ObjectiveVariant::Autoencode, 16),
+        ("table3-se3-plucker.yaml", ObjectiveVariant::Se3Plucker, 10),
     ] {
         let column = read(name);
         assert_eq!(column.stage1.objective.variant, variant, "{name}");
@@ -350,6 +351,12 @@ fn the_table_3_examples_differ_from_the_paper_only_in_objective_and_pose_size() 
         assert_eq!(model.pose_dim, pose_dim, "{name}");
         let mut expected = paper.model_config().unwrap();
         expected.pose_dim = pose_dim;
+        expected.pose_conditioning = variant.pose_conditioning();
+        assert_eq!(
+            model.pose_conditioning == settings::model::PoseConditioning::PluckerRays,
+            name == "table3-se3-plucker.yaml",
+            "{name}"
+        );
         assert_eq!(model, expected, "{name}");
         assert_eq!(column.stage1.schedule, paper.stage1.schedule, "{name}");
         assert_eq!(column.stage2.schedule, paper.stage2.schedule, "{name}");

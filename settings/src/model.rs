@@ -29,6 +29,29 @@ pub struct XFactorConfig {
     /// because the float32 model is the reference.
     #[serde(default)]
     pub round_qkv_bf16: bool,
+    /// What Render is conditioned on: XFactor's pose latents (default), or the Plücker ray maps
+    /// of explicit cameras (the `se3_plucker` ablation).
+    #[serde(default)]
+    pub pose_conditioning: PoseConditioning,
+}
+
+/// Values in the explicit camera vector PoseEnc reads for a view under
+/// [`PoseConditioning::PluckerRays`]: a 6-d rotation, a translation and a log focal length.
+pub const CAMERA_VECTOR_VALUES: usize = 10;
+
+/// Values per pixel of a Plücker ray map: the unit direction and the moment.
+pub const PLUCKER_VALUES: usize = 6;
+
+/// How a view's pose reaches Render.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum PoseConditioning {
+    /// Each token carries its view's `Cp`-d pose latent (XFactor).
+    #[default]
+    Latent,
+    /// PoseEnc's `Cp = 10` output is read as an explicit camera (relative SE(3) pose and focal
+    /// length) and each token carries the Plücker rays of its pixels (after RayZer).
+    PluckerRays,
 }
 
 /// A configuration that cannot build a model, with the field at fault.
@@ -58,12 +81,20 @@ pub enum ConfigError {
         /// Configured head count.
         num_heads: usize,
     },
+    /// Plücker-ray conditioning reads PoseEnc's output as a camera vector of fixed size.
+    #[error(
+        "model config: pose_dim {pose_dim} must be {CAMERA_VECTOR_VALUES} (6-d rotation, translation, log focal length) when Render is conditioned on Plücker rays"
+    )]
+    CameraVector {
+        /// Configured pose-latent size.
+        pose_dim: usize,
+    },
 }
 
 impl XFactorConfig {
     /// Version of this struct's serialised form. Processes that exchange configurations (the
     /// coordinator and its workers) refuse each other when it differs.
-    pub const SCHEMA_VERSION: u32 = 1;
+    pub const SCHEMA_VERSION: u32 = 2;
 
     /// The paper's configuration: width 1024, 16 heads, patch 16, 8 + 8 layers, `Cp = 256`,
     /// 256x256 images, `G = 32`.
@@ -78,6 +109,7 @@ impl XFactorConfig {
             pose_dim: 256,
             global_tokens: 32,
             round_qkv_bf16: false,
+            pose_conditioning: PoseConditioning::Latent,
         }
     }
 
@@ -94,6 +126,7 @@ impl XFactorConfig {
             pose_dim: 64,
             global_tokens: 8,
             round_qkv_bf16: false,
+            pose_conditioning: PoseConditioning::Latent,
         }
     }
 
@@ -111,6 +144,7 @@ impl XFactorConfig {
             pose_dim: 16,
             global_tokens: 4,
             round_qkv_bf16: false,
+            pose_conditioning: PoseConditioning::Latent,
         }
     }
 
@@ -127,6 +161,7 @@ impl XFactorConfig {
             pose_dim: 8,
             global_tokens: 2,
             round_qkv_bf16: false,
+            pose_conditioning: PoseConditioning::Latent,
         }
     }
 
@@ -160,6 +195,13 @@ impl XFactorConfig {
                 num_heads: self.num_heads,
             });
         }
+        if self.pose_conditioning == PoseConditioning::PluckerRays
+            && self.pose_dim != CAMERA_VECTOR_VALUES
+        {
+            return Err(ConfigError::CameraVector {
+                pose_dim: self.pose_dim,
+            });
+        }
         Ok(())
     }
 
@@ -181,6 +223,15 @@ impl XFactorConfig {
     /// Values per patch token, `3 p^2`.
     pub fn patch_values(&self) -> usize {
         3 * self.patch_size * self.patch_size
+    }
+
+    /// Values of the pose each Render token carries: the latent `Cp`, or the `6 p^2` Plücker
+    /// values of the patch's pixels.
+    pub fn pose_token_values(&self) -> usize {
+        match self.pose_conditioning {
+            PoseConditioning::Latent => self.pose_dim,
+            PoseConditioning::PluckerRays => PLUCKER_VALUES * self.patch_size * self.patch_size,
+        }
     }
 }
 
@@ -211,5 +262,19 @@ mod tests {
         let mut c = XFactorConfig::benchmark();
         c.pose_dim = 0;
         assert_eq!(c.validate(), Err(ConfigError::Zero { field: "pose_dim" }));
+        let mut c = XFactorConfig::tiny(16);
+        c.pose_conditioning = PoseConditioning::PluckerRays;
+        assert_eq!(c.validate(), Err(ConfigError::CameraVector { pose_dim: 8 }));
+        c.pose_dim = CAMERA_VECTOR_VALUES;
+        c.validate().unwrap();
+        assert_eq!(c.pose_token_values(), 6 * 16);
+    }
+
+    #[test]
+    fn configs_written_before_plucker_conditioning_read_as_latent() {
+        let mut json = serde_json::to_value(XFactorConfig::tiny(16)).unwrap();
+        json.as_object_mut().unwrap().remove("pose_conditioning");
+        let read: XFactorConfig = serde_json::from_value(json).unwrap();
+        assert_eq!(read, XFactorConfig::tiny(16));
     }
 }

@@ -4,6 +4,8 @@
 
 use serde::{Deserialize, Serialize};
 
+use crate::model::PoseConditioning;
+
 /// The part every stage objective has: the weight of LPIPS in its loss, which the stage's
 /// `lpips_weight` key sets and which decides whether LPIPS weights must be given.
 pub trait ObjectiveSettings: Default {
@@ -67,6 +69,12 @@ pub enum ObjectiveVariant {
     /// draws the target from the context with it; no mask, no swap, no self-decoding. The
     /// draws are made as for `transfer` (the augmentation is the same) and then overridden.
     Autoencode,
+    /// The paper's "SE(3) & Plücker" ablation (after RayZer): plain autoencoding as
+    /// `autoencode`, with PoseEnc's head reading an explicit camera for each view (a relative
+    /// SE(3) pose and a focal length; see `PoseConditioning::PluckerRays`) and Render
+    /// conditioned on the Plücker ray maps of those cameras instead of latents. A job that
+    /// names it in either stage builds its model that way.
+    Se3Plucker,
     /// Stage 1 only: the transfer objective with one more context view given to Render.
     /// Samples have three frames in window order: the reference, the extra view, the target;
     /// PoseEnc reads the extra view and the target each against the reference, in its own
@@ -83,7 +91,21 @@ impl ObjectiveVariant {
     pub fn stage1_frames(self) -> usize {
         match self {
             Self::ExtraViewDecoder | Self::ExtraViewEncoderDecoder => 3,
-            Self::Transfer | Self::Autoencode => 2,
+            Self::Transfer | Self::Autoencode | Self::Se3Plucker => 2,
+        }
+    }
+
+    /// Whether samples get XFactor's quadrant masks, slot swap and self-decoding; the
+    /// autoencoding ablations have none of them.
+    pub fn transferability(self) -> bool {
+        !matches!(self, Self::Autoencode | Self::Se3Plucker)
+    }
+
+    /// How the model this variant trains conditions Render on poses.
+    pub fn pose_conditioning(self) -> PoseConditioning {
+        match self {
+            Self::Se3Plucker => PoseConditioning::PluckerRays,
+            _ => PoseConditioning::Latent,
         }
     }
 

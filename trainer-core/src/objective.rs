@@ -107,7 +107,7 @@ impl Stage1Objective for Stage1Config {
         let pair = QuadrantMask::PAIRS[stream.below(6) as usize];
         let augmentation = self.augment.draw(&mut stream);
         let extra_augmentation = self.augment.draw(&mut stream);
-        let transfer = self.variant != ObjectiveVariant::Autoencode;
+        let transfer = self.variant.transferability();
         Stage1Draw {
             self_decode: transfer && self_decode,
             mask: QuadrantMask {
@@ -403,7 +403,7 @@ impl Stage2Objective for Stage2Config {
         let augmentations = (1..order.len())
             .map(|_| self.augment.draw(&mut stream))
             .collect();
-        let transfer = self.variant != ObjectiveVariant::Autoencode;
+        let transfer = self.variant.transferability();
         Stage2Draw {
             order,
             self_decode_from: (transfer && self_decode).then_some(replacement),

@@ -107,6 +107,7 @@ impl FixtureConfig {
             pose_dim: self.pose_dim,
             global_tokens: self.global_tokens,
             round_qkv_bf16: false,
+            pose_conditioning: settings::model::PoseConditioning::Latent,
         };
         config.validate().map_err(|e: ConfigError| e.to_string())?;
         Ok(config)

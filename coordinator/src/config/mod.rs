@@ -7,7 +7,8 @@ use std::path::Path;
 use serde::{Deserialize, Deserializer, Serialize};
 use settings::data::{DatasetKind, DatasetSampling, SamplerConfig};
 use settings::evaluation::EvaluationSpec;
-use settings::objective::{ObjectiveSettings, Stage1Config, Stage2Config};
+use settings::model::{ConfigError as ModelError, PoseConditioning};
+use settings::objective::{ObjectiveSettings, ObjectiveVariant, Stage1Config, Stage2Config};
 use settings::optim::{AdamWConfig, Schedule};
 use settings::{Phase, XFactorConfig};
 
@@ -414,11 +415,15 @@ impl ClusterConfig {
     fn check(&self, text: &str) -> Result<(), String> {
         let at =
             |path: &[&str]| locate(text, path).map_or(String::new(), |l| format!(" at line {l}"));
-        self.model.resolve().map_err(|e| {
+        self.model_config().map_err(|e| {
             let key = self.model.key_at_fault(&e);
             let line = locate(text, &["model", key])
                 .map_or_else(|| at(&["model"]), |l| format!(" at line {l}"));
-            format!("model.{key}: {e}{line}")
+            let why = match e {
+                ModelError::CameraVector { .. } => " (an objective variant is se3_plucker)",
+                _ => "",
+            };
+            format!("model.{key}: {e}{why}{line}")
         })?;
         if self.stage2.objective.variant.stage1_only() {
             return Err(format!(
@@ -549,9 +554,16 @@ impl ClusterConfig {
         Ok(())
     }
 
-    /// The model configuration (already checked when the file was read).
-    pub fn model_config(&self) -> Result<XFactorConfig, settings::model::ConfigError> {
-        self.model.resolve()
+    /// The model configuration (already checked when the file was read). Render is
+    /// conditioned on Plücker rays when either stage trains `se3_plucker`: both stages train
+    /// one model.
+    pub fn model_config(&self) -> Result<XFactorConfig, ModelError> {
+        let conditioning = [self.stage1.objective.variant, self.stage2.objective.variant]
+            .into_iter()
+            .map(ObjectiveVariant::pose_conditioning)
+            .find(|c| *c != PoseConditioning::Latent)
+            .unwrap_or_default();
+        self.model.resolve(conditioning)
     }
 
     /// The window sampler of training stage `phase` with the datasets' overrides.

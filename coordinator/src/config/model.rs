@@ -3,7 +3,7 @@
 
 use serde::{Deserialize, Serialize};
 use settings::XFactorConfig;
-use settings::model::ConfigError;
+use settings::model::{CAMERA_VECTOR_VALUES, ConfigError, PoseConditioning};
 
 /// A preset and the dimensions that replace its own.
 #[derive(Debug, Clone, PartialEq, Deserialize, Serialize)]
@@ -30,7 +30,8 @@ pub struct ModelConfig {
     /// Multi-view layers in Render.
     #[serde(default)]
     pub render_layers: Option<usize>,
-    /// Pose-latent size `Cp` (the paper's "Bottleneck" ablation uses 16).
+    /// Pose-latent size `Cp` (the paper's "Bottleneck" ablation uses 16; `se3_plucker` needs
+    /// the camera vector's 10, its default there).
     #[serde(default)]
     pub pose_dim: Option<usize>,
     /// Learned global tokens `G` per PoseEnc view.
@@ -70,8 +71,10 @@ impl ModelConfig {
         }
     }
 
-    /// The model configuration: the preset's with the overrides, checked.
-    pub fn resolve(&self) -> Result<XFactorConfig, ConfigError> {
+    /// The model configuration: the preset's with the overrides and Render's `conditioning`
+    /// (which the objective variants decide), checked. Under Plücker-ray conditioning `pose_dim`
+    /// defaults to the camera vector's size.
+    pub fn resolve(&self, conditioning: PoseConditioning) -> Result<XFactorConfig, ConfigError> {
         let mut config = match self.preset {
             ModelPreset::Tiny => XFactorConfig::tiny(32),
             ModelPreset::Benchmark => XFactorConfig::benchmark(),
@@ -92,6 +95,10 @@ impl ModelConfig {
             }
         }
         config.round_qkv_bf16 = self.round_qkv_bf16;
+        config.pose_conditioning = conditioning;
+        if conditioning == PoseConditioning::PluckerRays && self.pose_dim.is_none() {
+            config.pose_dim = CAMERA_VECTOR_VALUES;
+        }
         config.validate().map(|()| config)
     }
 
@@ -104,6 +111,7 @@ impl ModelConfig {
             ConfigError::PatchGrid { .. } => "image_size",
             ConfigError::HeadSize { .. } if self.num_heads.is_some() => "num_heads",
             ConfigError::HeadSize { .. } => "width",
+            ConfigError::CameraVector { .. } => "pose_dim",
         }
     }
 }
@@ -117,7 +125,7 @@ mod tests {
         let mut model = ModelConfig::preset(ModelPreset::Benchmark);
         model.pose_dim = Some(16);
         model.render_layers = Some(2);
-        let config = model.resolve().unwrap();
+        let config = model.resolve(PoseConditioning::Latent).unwrap();
         let mut expected = XFactorConfig::benchmark();
         expected.pose_dim = 16;
         expected.render_layers = 2;
@@ -128,15 +136,30 @@ mod tests {
     fn a_broken_rule_is_blamed_on_the_key_the_file_set() {
         let mut model = ModelConfig::preset(ModelPreset::Paper);
         model.num_heads = Some(12);
-        let error = model.resolve().unwrap_err();
+        let error = model.resolve(PoseConditioning::Latent).unwrap_err();
         assert_eq!(model.key_at_fault(&error), "num_heads");
         let mut model = ModelConfig::preset(ModelPreset::Paper);
         model.width = Some(1000);
-        let error = model.resolve().unwrap_err();
+        let error = model.resolve(PoseConditioning::Latent).unwrap_err();
         assert_eq!(model.key_at_fault(&error), "width");
         let mut model = ModelConfig::preset(ModelPreset::Tiny);
         model.patch_size = Some(5);
-        let error = model.resolve().unwrap_err();
+        let error = model.resolve(PoseConditioning::Latent).unwrap_err();
         assert_eq!(model.key_at_fault(&error), "patch_size");
+    }
+
+    #[test]
+    fn plucker_conditioning_reads_a_camera_vector() {
+        let mut model = ModelConfig::preset(ModelPreset::Tiny);
+        let config = model.resolve(PoseConditioning::PluckerRays).unwrap();
+        assert_eq!(config.pose_dim, CAMERA_VECTOR_VALUES);
+        assert_eq!(config.pose_conditioning, PoseConditioning::PluckerRays);
+        model.pose_dim = Some(16);
+        let error = model.resolve(PoseConditioning::PluckerRays).unwrap_err();
+        assert_eq!(model.key_at_fault(&error), "pose_dim");
+        assert!(
+            error.to_string().contains("pose_dim 16 must be 10"),
+            "{error}"
+        );
     }
 }

@@ -249,3 +249,35 @@ fn extra_view_variants_draw_three_frames_in_stage_1_and_are_refused_in_stage_2()
     ));
     assert!(refused.contains("stage2.objective.variant"), "{refused}");
 }
+
+#[test]
+fn se3_plucker_in_either_stage_builds_a_ray_conditioned_model() {
+    use settings::model::{CAMERA_VECTOR_VALUES, PoseConditioning};
+    let plain = ClusterConfig::from_yaml(GOOD, "cluster.yaml").unwrap();
+    assert_eq!(
+        plain.model_config().unwrap().pose_conditioning,
+        PoseConditioning::Latent
+    );
+    let in_stage1 = GOOD.replace(
+        "  lpips_weight: 0\nstage2",
+        "  lpips_weight: 0\n  objective: {variant: se3_plucker}\nstage2",
+    );
+    let in_stage2 = GOOD.replace(
+        "  lpips_weight: 0\ncheckpoint",
+        "  lpips_weight: 0\n  objective: {variant: se3_plucker}\ncheckpoint",
+    );
+    for text in [&in_stage1, &in_stage2] {
+        let model = ClusterConfig::from_yaml(text, "cluster.yaml")
+            .unwrap()
+            .model_config()
+            .unwrap();
+        assert_eq!(model.pose_conditioning, PoseConditioning::PluckerRays);
+        assert_eq!(model.pose_dim, CAMERA_VECTOR_VALUES);
+    }
+    let refused = error_of(&in_stage1.replace("preset: tiny", "preset: tiny\n  pose_dim: 16"));
+    assert!(
+        refused.contains("model.pose_dim: model config: pose_dim 16 must be 10")
+            && refused.contains("se3_plucker"),
+        "{refused}"
+    );
+}

@@ -8,6 +8,7 @@ use settings::data::{
     StoredDataset,
 };
 use settings::evaluation::{EvaluationSpec, OracleSpec, ProbeLoss, ProbeSpec};
+use settings::model::PoseConditioning;
 use settings::objective::{AugmentConfig, ObjectiveVariant, Stage1Config, Stage2Config};
 use settings::optim::{AdamWConfig, Schedule};
 use settings::train::{StageObjective, TrainConfig};
@@ -129,6 +130,7 @@ impl From<&XFactorConfig> for v1::ModelConfig {
             pose_dim: c.pose_dim as u64,
             global_tokens: c.global_tokens as u64,
             round_qkv_bf16: c.round_qkv_bf16,
+            plucker_ray_conditioning: c.pose_conditioning == PoseConditioning::PluckerRays,
         }
     }
 }
@@ -145,6 +147,11 @@ impl From<&v1::ModelConfig> for XFactorConfig {
             pose_dim: size(m.pose_dim),
             global_tokens: size(m.global_tokens),
             round_qkv_bf16: m.round_qkv_bf16,
+            pose_conditioning: if m.plucker_ray_conditioning {
+                PoseConditioning::PluckerRays
+            } else {
+                PoseConditioning::Latent
+            },
         }
     }
 }
@@ -192,6 +199,7 @@ fn common_to_wire(
         variant: match variant {
             ObjectiveVariant::Transfer => v1::ObjectiveVariant::Transfer,
             ObjectiveVariant::Autoencode => v1::ObjectiveVariant::Autoencode,
+            ObjectiveVariant::Se3Plucker => v1::ObjectiveVariant::Se3Plucker,
             ObjectiveVariant::ExtraViewDecoder => v1::ObjectiveVariant::ExtraViewDecoder,
             ObjectiveVariant::ExtraViewEncoderDecoder => {
                 v1::ObjectiveVariant::ExtraViewEncoderDecoder
@@ -204,6 +212,7 @@ fn variant_from_wire(value: i32) -> Result<ObjectiveVariant, ConvertError> {
     match v1::ObjectiveVariant::try_from(value) {
         Ok(v1::ObjectiveVariant::Transfer) => Ok(ObjectiveVariant::Transfer),
         Ok(v1::ObjectiveVariant::Autoencode) => Ok(ObjectiveVariant::Autoencode),
+        Ok(v1::ObjectiveVariant::Se3Plucker) => Ok(ObjectiveVariant::Se3Plucker),
         Ok(v1::ObjectiveVariant::ExtraViewDecoder) => Ok(ObjectiveVariant::ExtraViewDecoder),
         Ok(v1::ObjectiveVariant::ExtraViewEncoderDecoder) => {
             Ok(ObjectiveVariant::ExtraViewEncoderDecoder)

@@ -6,6 +6,15 @@ use super::*;
 fn every_setting_survives_the_wire() {
     let model = XFactorConfig::benchmark();
     assert_eq!(XFactorConfig::from(&v1::ModelConfig::from(&model)), model);
+    let plucker = XFactorConfig {
+        pose_conditioning: PoseConditioning::PluckerRays,
+        pose_dim: settings::model::CAMERA_VECTOR_VALUES,
+        ..XFactorConfig::tiny(16)
+    };
+    assert_eq!(
+        XFactorConfig::from(&v1::ModelConfig::from(&plucker)),
+        plucker
+    );
     for objective in [
         StageObjective::Stage1(Stage1Config {
             lpips_weight: 0.25,
@@ -22,6 +31,10 @@ fn every_setting_survives_the_wire() {
         }),
         StageObjective::Stage2(Stage2Config {
             variant: ObjectiveVariant::Autoencode,
+            ..Stage2Config::default()
+        }),
+        StageObjective::Stage2(Stage2Config {
+            variant: ObjectiveVariant::Se3Plucker,
             ..Stage2Config::default()
         }),
         StageObjective::Stage1(Stage1Config {

@@ -291,6 +291,7 @@ fn infer_config(
         pose_dim: head.shape[1],
         global_tokens: global.shape[0],
         round_qkv_bf16: false,
+        pose_conditioning: settings::model::PoseConditioning::Latent,
     };
     config.validate().map_err(|source| ImportError::Config {
         path: path.to_path_buf(),

@@ -1,5 +1,6 @@
 //! XFactor's two networks in burn, computing what the authors' JAX release computes.
 
+mod camera;
 mod init;
 mod layers;
 mod multiview;
@@ -8,6 +9,7 @@ mod pose_enc;
 mod render;
 mod rope;
 
+pub use camera::{REFERENCE_FOCAL, plucker_tokens, rotation_columns};
 pub use init::ParamInit;
 pub use layers::{Dense, LayerNorm, LayerScale, Mlp2, Mlp3, RmsNorm, gelu_tanh};
 pub use multiview::{MultiViewLayer, SegmentMasks};

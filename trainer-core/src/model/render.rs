@@ -4,14 +4,17 @@ use burn::module::Module;
 use burn::tensor::Tensor;
 use burn::tensor::activation::sigmoid;
 
+use super::camera::plucker_tokens;
 use super::init::ParamInit;
 use super::layers::{LayerNorm, Mlp2, Mlp3, gelu_tanh};
 use super::multiview::{MultiViewLayer, SegmentMasks};
 use super::patch::{patchify, unpatchify};
 use super::rope::RopeTable;
 use settings::XFactorConfig;
+use settings::model::{CAMERA_VECTOR_VALUES, PoseConditioning};
 
-/// Pose latents handed to Render, one per view with the target's last.
+/// Pose latents handed to Render, one per view with the target's last. Under Plücker-ray
+/// conditioning they are camera vectors (see [`super::camera`]).
 #[derive(Debug, Clone)]
 pub enum PoseLatents {
     /// `(B, V, 2, Cp)`: a latent per mask segment; each patch takes the one of its segment.
@@ -37,6 +40,9 @@ pub struct Render {
     pub patch_size: usize,
     /// Heads `h`, which set RoPE's head size.
     pub num_heads: usize,
+    /// Whether tokens carry latents or the Plücker rays of cameras.
+    #[module(skip)]
+    pub conditioning: PoseConditioning,
 }
 
 impl Render {
@@ -46,11 +52,11 @@ impl Render {
         Self {
             context_lift: Mlp2::new(
                 init,
-                config.patch_values() + config.pose_dim,
+                config.patch_values() + config.pose_token_values(),
                 4 * width,
                 width,
             ),
-            target_lift: Mlp2::new(init, config.pose_dim, 4 * width, width),
+            target_lift: Mlp2::new(init, config.pose_token_values(), 4 * width, width),
             layers: (0..config.render_layers)
                 .map(|_| MultiViewLayer::new(init, width, config.num_heads, config.round_qkv_bf16))
                 .collect(),
@@ -58,10 +64,12 @@ impl Render {
             pixel_head: Mlp3::new(init, width, 4 * width, width, config.patch_values()),
             patch_size: config.patch_size,
             num_heads: config.num_heads,
+            conditioning: config.pose_conditioning,
         }
     }
 
-    /// `context: (B, V-1, H, W, 3)`, `poses` for all `V` views (target last), optional patch
+    /// `context: (B, V-1, H, W, 3)`, `poses` for all `V` views (target last; camera vectors
+    /// under Plücker-ray conditioning, turned into ray maps here), optional patch
     /// `mask: (B, T)` of 0/1 used both to pick per-segment latents and as segment ids.
     /// Returns the target image `(B, H, W, 3)` in `[-1, 1]`.
     pub fn forward(
@@ -93,6 +101,19 @@ impl Render {
                     }
                     None => slot(0).expand([b, views, patches, cp]),
                 }
+            }
+        };
+        let token_poses = match self.conditioning {
+            PoseConditioning::Latent => token_poses,
+            PoseConditioning::PluckerRays => {
+                // Every view takes the target's focal length, patch by patch (so a segment's
+                // camera keeps its own intrinsics through the swap).
+                let focal = token_poses
+                    .clone()
+                    .narrow(1, contexts, 1)
+                    .narrow(3, CAMERA_VECTOR_VALUES - 1, 1)
+                    .expand([b, views, patches, 1]);
+                plucker_tokens(token_poses, focal, self.patch_size, grid.0)
             }
         };
 
