@@ -1,6 +1,6 @@
-//! The paper's Table 3 in miniature: four tiny variants (XFactor's transfer objective, plain
-//! autoencoding, autoencoding through a smaller pose latent, and an extra view for PoseEnc
-//! and Render) trained and evaluated through the local harness, then laid side by side by
+//! The paper's Table 3 in miniature: five tiny variants (XFactor's transfer objective, plain
+//! autoencoding, autoencoding through a smaller pose latent, an extra view for PoseEnc and
+//! Render, and explicit cameras with Plücker-ray conditioning) trained and evaluated through the local harness, then laid side by side by
 //! `xfactor compare`.
 
 mod common;
@@ -13,7 +13,7 @@ use common::{Running, small_job};
 use settings::objective::ObjectiveVariant;
 
 #[test]
-fn four_variants_train_evaluate_and_compare_in_one_table() {
+fn five_variants_train_evaluate_and_compare_in_one_table() {
     let dir = tempfile::tempdir().unwrap();
     let started = Instant::now();
     let mut evaluations: Vec<PathBuf> = Vec::new();
@@ -27,6 +27,7 @@ fn four_variants_train_evaluate_and_compare_in_one_table() {
             ObjectiveVariant::ExtraViewEncoderDecoder,
             None,
         ),
+        ("se3-plucker", ObjectiveVariant::Se3Plucker, None),
     ] {
         let mut job = small_job(&dir.path().join(name), 1);
         job.stage1_steps = 6;
@@ -41,9 +42,15 @@ fn four_variants_train_evaluate_and_compare_in_one_table() {
         let numbers: serde_json::Value =
             serde_json::from_slice(&std::fs::read(evaluation.join("report.json")).unwrap())
                 .unwrap();
+        let camera = variant == ObjectiveVariant::Se3Plucker;
         assert_eq!(
             numbers["model"]["pose_dim"],
-            pose_dim.unwrap_or(8),
+            pose_dim.unwrap_or(if camera { 10 } else { 8 }),
+            "{name}"
+        );
+        assert_eq!(
+            numbers["model"]["pose_conditioning"],
+            if camera { "plucker_rays" } else { "latent" },
             "{name}"
         );
         evaluations.push(evaluation);
@@ -75,6 +82,8 @@ fn four_variants_train_evaluate_and_compare_in_one_table() {
             "Bottleneck",
             "--label",
             "ExtraView",
+            "--label",
+            "SE3Plucker",
         ])
         .arg("--out")
         .arg(&out)
@@ -87,14 +96,15 @@ fn four_variants_train_evaluate_and_compare_in_one_table() {
         String::from_utf8_lossy(&output.stderr)
     );
     println!(
-        "variants=4 seconds={:.1}\n{table}",
+        "variants=5 seconds={:.1}\n{table}",
         started.elapsed().as_secs_f64()
     );
     for (row, (label, pose_dim)) in [
-        ("XFactor", 8),
-        ("Unconstrained", 8),
-        ("Bottleneck", 4),
-        ("ExtraView", 8),
+        ("XFactor", "8"),
+        ("Unconstrained", "8"),
+        ("Bottleneck", "4"),
+        ("ExtraView", "8"),
+        ("SE3Plucker", "10 Plücker"),
     ]
     .iter()
     .enumerate()

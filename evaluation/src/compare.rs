@@ -6,6 +6,7 @@
 use std::fmt::Write;
 use std::path::{Path, PathBuf};
 
+use settings::model::PoseConditioning;
 use telemetry::bars::BarChart;
 
 use crate::error::{EvalError, io_error};
@@ -161,7 +162,7 @@ pub fn markdown(runs: &[ComparedRun], threshold: u32) -> String {
             .collect();
         let _ = writeln!(
             text,
-            "| {} | {} | C={} h={} L={}+{} Cp={} | {} |",
+            "| {} | {} | C={} h={} L={}+{} Cp={}{} | {} |",
             index + 1,
             run.label,
             model.width,
@@ -169,6 +170,10 @@ pub fn markdown(runs: &[ComparedRun], threshold: u32) -> String {
             model.pose_layers,
             model.render_layers,
             model.pose_dim,
+            match model.pose_conditioning {
+                PoseConditioning::Latent => "",
+                PoseConditioning::PluckerRays => " Plücker",
+            },
             cells.join(" | ")
         );
     }
