@@ -267,6 +267,7 @@ mod tests {
                     final_loss: 0.1,
                     metrics: metrics(probe),
                 },
+                sequences: Vec::new(),
             },
             untrained: None,
             figures: Vec::new(),

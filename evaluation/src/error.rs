@@ -4,6 +4,7 @@
 use std::path::PathBuf;
 
 use data::decode::DecodeError;
+use data::index::IndexError;
 use data::store::StoreError;
 use trainer_core::checkpoint::CheckpointError;
 
@@ -21,6 +22,9 @@ pub enum EvalError {
     /// Frames could not be listed or read.
     #[error(transparent)]
     Store(#[from] StoreError),
+    /// A dataset of the sequence protocol could not be indexed.
+    #[error(transparent)]
+    Index(#[from] IndexError),
     /// A frame could not be decoded.
     #[error(transparent)]
     Decode(#[from] DecodeError),

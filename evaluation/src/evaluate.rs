@@ -1,5 +1,6 @@
 //! The `evaluate` stage: reconstruction (autoencoding), TPS and the pose probe of one checkpoint
-//! on generated scenes, next to the same numbers for an untrained model of the same shape,
+//! on generated scenes, reconstruction of real test sequences under E-RayZer's protocol when
+//! asked for, next to the same numbers for an untrained model of the same shape,
 //! written as `report.json`, `report.md` and PNG figures.
 
 use std::path::{Path, PathBuf};
@@ -21,6 +22,7 @@ use crate::oracle::{
     ClassicalOracle, ClassicalSettings, ExternalOracle, GroundTruthOracle, PoseOracle,
 };
 use crate::probe::{ProbeReport, ProbeSequence, run_probe};
+use crate::sequences::{ProtocolSet, SequenceReport, load_protocol};
 use crate::tps::{TpsReport, draw_pairs, target_frames, transferability};
 use settings::evaluation::{EvaluationSpec, OracleSpec};
 
@@ -49,6 +51,9 @@ pub struct ModelReport {
     pub tps: TpsReport,
     /// Pose probe.
     pub probe: ProbeReport,
+    /// Reconstruction of real test sequences under E-RayZer's protocol, per dataset.
+    #[serde(default)]
+    pub sequences: Vec<SequenceReport>,
 }
 
 /// The whole evaluation, as written to `report.json`.
@@ -89,26 +94,25 @@ fn oracle_for(
 struct Context<'a> {
     spec: &'a EvaluationSpec,
     dataset: SyntheticDataset,
+    protocol_sets: Vec<ProtocolSet>,
     oracle: Box<dyn PoseOracle>,
     lpips: Option<Lpips>,
     device: Device,
     out_dir: &'a Path,
 }
 
-fn reconstruction(
+/// Renders every frame of each sequence after the first from the first, with the poses PoseEnc
+/// reads from the sequence itself.
+fn reconstruct<'s>(
     model: &XFactor,
+    sequences: impl Iterator<Item = &'s [Image]>,
     context: &Context<'_>,
 ) -> Result<(ReconstructionReport, Vec<Vec<Image>>), EvalError> {
     let (mut psnrs, mut ssims, mut lpipses) = (Vec::new(), Vec::new(), Vec::new());
     let mut grid = Vec::new();
-    for sequence in context
-        .dataset
-        .sequences
-        .iter()
-        .take(context.spec.reconstruction_sequences)
-    {
-        let first = &sequence.frames[0];
-        let targets = &sequence.frames[1..];
+    for frames in sequences {
+        let first = &frames[0];
+        let targets = &frames[1..];
         let latents = pose_latents(model, first, targets, &context.device)?;
         let zero = vec![0.0; latents.first().map_or(0, Vec::len)];
         let renders = render_targets(
@@ -140,7 +144,7 @@ fn reconstruction(
             lpipses.extend(distances.iter().map(|&d| f64::from(d)));
         }
         if grid.len() < 2 * GRID_PAIRS {
-            grid.push(sequence.frames.clone());
+            grid.push(frames.to_vec());
             grid.push([vec![first.clone()], renders].concat());
         }
     }
@@ -202,11 +206,37 @@ fn evaluate_model(
 
     let (reconstruction, grid) = {
         let _span = tracing::info_span!("reconstruction", model = prefix).entered();
-        reconstruction(model, context)?
+        let generated = context
+            .dataset
+            .sequences
+            .iter()
+            .take(spec.reconstruction_sequences)
+            .map(|s| s.frames.as_slice());
+        reconstruct(model, generated, context)?
     };
     save(format!("{prefix}_reconstruction.png"), &|p| {
         Ok(save_grid(&grid, p)?)
     })?;
+    let mut sequences = Vec::new();
+    for set in &context.protocol_sets {
+        let protocol = &set.protocol;
+        let _span =
+            tracing::info_span!("sequences", model = prefix, dataset = ?protocol.kind).entered();
+        let frames = set.sequences.iter().map(|s| s.frames.as_slice());
+        let (reconstruction, grid) = reconstruct(model, frames, context)?;
+        save(
+            format!("{prefix}_sequences_{}.png", protocol.kind.name()),
+            &|p| Ok(save_grid(&grid, p)?),
+        )?;
+        sequences.push(SequenceReport {
+            kind: protocol.kind,
+            uri: protocol.uri.clone(),
+            length: protocol.length,
+            sequences: set.sequences.len(),
+            skipped_short: set.skipped_short,
+            reconstruction,
+        });
+    }
 
     let pairs = draw_pairs(spec.seed, spec.scenes, spec.trajectories, spec.tps_pairs)?;
     let mut grid_rows = Vec::new();
@@ -283,6 +313,7 @@ fn evaluate_model(
         reconstruction,
         tps,
         probe,
+        sequences,
     })
 }
 
@@ -318,6 +349,14 @@ pub fn run_evaluation(
             &scene_config,
         )
     };
+    let protocol_sets = spec
+        .sequences
+        .iter()
+        .map(|protocol| {
+            let _span = tracing::info_span!("load_sequences", dataset = ?protocol.kind).entered();
+            load_protocol(protocol, config.image_size)
+        })
+        .collect::<Result<Vec<_>, _>>()?;
     let lpips =
         match &spec.lpips_weights {
             Some(path) => Some(Lpips::from_file(path, device).map_err(|e| {
@@ -329,6 +368,7 @@ pub fn run_evaluation(
         spec,
         oracle: oracle_for(&spec.oracle, &dataset, &scene_config),
         dataset,
+        protocol_sets,
         lpips,
         device: device.clone(),
         out_dir,
@@ -418,6 +458,25 @@ pub fn markdown(report: &EvaluationReport) -> String {
             "| {name} | probe | {} |\n",
             camera_cells(&r.probe.metrics)
         ));
+    }
+    if !report.trained.sequences.is_empty() {
+        text.push_str("\n## Real test sequences (E-RayZer's protocol: fixed length, equally spaced frames, first and last included)\n\n| model | dataset | length | sequences | skipped (short) | frames | PSNR | SSIM | LPIPS |\n| --- | --- | --- | --- | --- | --- | --- | --- | --- |\n");
+        for (name, r) in &rows {
+            for set in &r.sequences {
+                let c = &set.reconstruction;
+                let lpips = c.lpips.map_or("-".to_string(), |v| format!("{v:.4}"));
+                text.push_str(&format!(
+                    "| {name} | {} | {} | {} | {} | {} | {:.2} | {:.4} | {lpips} |\n",
+                    set.kind.name(),
+                    set.length,
+                    set.sequences,
+                    set.skipped_short,
+                    c.frames,
+                    c.psnr,
+                    c.ssim
+                ));
+            }
+        }
     }
     let tps = &report.trained.tps;
     text.push_str(&format!(

@@ -19,6 +19,7 @@ pub use transfer::{TransferOutput, TransferRequest, run_transfer, run_transfer_s
 pub use video::Sampling;
 pub mod evaluate;
 pub mod probe;
+pub mod sequences;
 pub mod so3;
 pub mod tps;
 

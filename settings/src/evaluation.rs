@@ -5,6 +5,8 @@ use std::path::PathBuf;
 
 use serde::{Deserialize, Serialize};
 
+use crate::data::DatasetKind;
+
 /// What to evaluate: small enough to travel as JSON in a job assignment.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -31,6 +33,26 @@ pub struct EvaluationSpec {
     pub lpips_weights: Option<PathBuf>,
     /// Also evaluate an untrained model of the same configuration, as the baseline.
     pub compare_untrained: bool,
+    /// Real test sequences reconstructed under E-RayZer's protocol, one entry per dataset.
+    pub sequences: Vec<SequenceProtocol>,
+}
+
+/// E-RayZer's evaluation protocol on one dataset's test split: every evaluated sequence has the
+/// same length, its frames equally spaced over the video with the first and last always among
+/// them; the first frame is the context and the model reconstructs the others.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct SequenceProtocol {
+    /// The dataset's layout.
+    pub kind: DatasetKind,
+    /// Its root: a path or an object-store URI.
+    pub uri: String,
+    /// Frames per evaluated sequence (E-RayZer fixes one per dataset); shorter sequences are
+    /// skipped and counted.
+    pub length: usize,
+    /// Test sequences evaluated: the first ones of the test split, in manifest order, that are
+    /// long enough.
+    pub count: usize,
 }
 
 impl EvaluationSpec {
@@ -60,10 +82,20 @@ impl EvaluationSpec {
                 "at least 1 and fewer than `scenes` (the rest train the probe)",
             ),
         ];
-        match checks.iter().find(|(bad, _, _)| *bad) {
-            Some((_, key, expected)) => Err(format!("{key}: expected {expected}")),
-            None => Ok(()),
+        if let Some((_, key, expected)) = checks.iter().find(|(bad, _, _)| *bad) {
+            return Err(format!("{key}: expected {expected}"));
         }
+        for (index, protocol) in self.sequences.iter().enumerate() {
+            if protocol.length < 2 {
+                return Err(format!(
+                    "sequences[{index}].length: expected at least 2 (a context frame and a target)"
+                ));
+            }
+            if protocol.count == 0 {
+                return Err(format!("sequences[{index}].count: expected at least 1"));
+            }
+        }
+        Ok(())
     }
 }
 
@@ -83,6 +115,7 @@ impl Default for EvaluationSpec {
             oracle: OracleSpec::GroundTruth,
             lpips_weights: None,
             compare_untrained: true,
+            sequences: Vec::new(),
         }
     }
 }

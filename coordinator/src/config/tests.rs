@@ -84,6 +84,38 @@ fn the_evaluation_section_takes_defaults_and_names_unknown_keys() {
 }
 
 #[test]
+fn the_sequence_protocol_takes_one_entry_per_dataset_and_names_a_bad_length() {
+    let entry = "  sequences:\n    - {kind: acid, uri: s3://bucket/acid, length: 12, count: 50}\n";
+    let config = ClusterConfig::from_yaml(&format!("{GOOD}evaluate:\n{entry}"), "t.yaml")
+        .unwrap_or_else(|e| panic!("{e}"));
+    let protocol = &config.evaluate.expect("an evaluation").sequences[0];
+    assert_eq!(
+        (
+            protocol.kind,
+            protocol.uri.as_str(),
+            protocol.length,
+            protocol.count
+        ),
+        (
+            settings::data::DatasetKind::Acid,
+            "s3://bucket/acid",
+            12,
+            50
+        )
+    );
+    let short = error_of(&format!(
+        "{GOOD}evaluate:\n{}",
+        entry.replace("length: 12", "length: 1")
+    ));
+    assert!(short.contains("evaluate.sequences[0].length"), "{short}");
+    let missing = error_of(&format!(
+        "{GOOD}evaluate:\n{}",
+        entry.replace(", count: 50", "")
+    ));
+    assert!(missing.contains("count"), "{missing}");
+}
+
+#[test]
 fn bad_values_name_the_key_the_line_and_the_expectation() {
     let zero = error_of(&GOOD.replace("  steps: 10", "  steps: 0"));
     assert!(zero.contains("stage1.steps"), "{zero}");

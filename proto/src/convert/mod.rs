@@ -7,7 +7,7 @@ use settings::data::{
     DataSource, DataSpec, DatasetKind, DatasetSampling, ListingFingerprint, SamplerConfig,
     StoredDataset,
 };
-use settings::evaluation::{EvaluationSpec, OracleSpec, ProbeLoss, ProbeSpec};
+use settings::evaluation::{EvaluationSpec, OracleSpec, ProbeLoss, ProbeSpec, SequenceProtocol};
 use settings::model::PoseConditioning;
 use settings::objective::{AugmentConfig, ObjectiveVariant, Stage1Config, Stage2Config};
 use settings::optim::{AdamWConfig, Schedule};
@@ -500,6 +500,16 @@ impl From<&EvaluationSpec> for v1::EvaluationSettings {
                 .as_ref()
                 .map(|p| p.to_string_lossy().into_owned()),
             compare_untrained: e.compare_untrained,
+            sequences: e
+                .sequences
+                .iter()
+                .map(|p| v1::SequenceProtocol {
+                    kind: kind_to_wire(p.kind),
+                    uri: p.uri.clone(),
+                    length: p.length as u64,
+                    count: p.count as u64,
+                })
+                .collect(),
         }
     }
 }
@@ -545,6 +555,18 @@ impl TryFrom<&v1::EvaluationSettings> for EvaluationSpec {
             oracle,
             lpips_weights: e.lpips_weights.as_ref().map(Into::into),
             compare_untrained: e.compare_untrained,
+            sequences: e
+                .sequences
+                .iter()
+                .map(|p| {
+                    Ok(SequenceProtocol {
+                        kind: kind_from_wire(p.kind, "evaluate.sequences.kind")?,
+                        uri: p.uri.clone(),
+                        length: size(p.length),
+                        count: size(p.count),
+                    })
+                })
+                .collect::<Result<_, ConvertError>>()?,
         })
     }
 }

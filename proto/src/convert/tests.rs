@@ -101,6 +101,12 @@ fn every_setting_survives_the_wire() {
             loss: ProbeLoss::Trajectories,
             ..ProbeSpec::default()
         },
+        sequences: vec![SequenceProtocol {
+            kind: DatasetKind::Wildrgbd,
+            uri: "s3://bucket/wildrgbd".into(),
+            length: 12,
+            count: 20,
+        }],
         ..EvaluationSpec::default()
     };
     let back = EvaluationSpec::try_from(&v1::EvaluationSettings::from(&evaluation)).unwrap();
