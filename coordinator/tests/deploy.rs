@@ -327,7 +327,7 @@ fn the_erayzer_example_mixes_seven_datasets_with_its_weights_and_schedule() {
 }
 
 #[test]
-fn the_table_3_examples_differ_from_the_paper_only_in_objective_and_pose_size() {
+fn the_table_3_examples_differ_from_the_paper_only_in_objective_pose_size_and_views() {
     use settings::objective::ObjectiveVariant;
     let read = |name: &str| {
         ClusterConfig::from_file(&repository().join("deploy/examples").join(name))
@@ -368,5 +368,36 @@ fn the_table_3_examples_differ_from_the_paper_only_in_objective_and_pose_size() 
             (column.stage1.global_batch, column.stage1.steps),
             (paper.stage1.global_batch, paper.stage1.steps)
         );
+    }
+    for (name, variant) in [
+        (
+            "table3-extra-view-decoder.yaml",
+            ObjectiveVariant::ExtraViewDecoder,
+        ),
+        (
+            "table3-extra-view-encoder-decoder.yaml",
+            ObjectiveVariant::ExtraViewEncoderDecoder,
+        ),
+    ] {
+        let column = read(name);
+        assert_eq!(column.stage1.objective.variant, variant, "{name}");
+        assert_eq!(
+            column.stage2.objective.variant,
+            ObjectiveVariant::Transfer,
+            "{name}: stage 2 is XFactor's"
+        );
+        assert_eq!(
+            column.model_config().unwrap(),
+            paper.model_config().unwrap(),
+            "{name}"
+        );
+        assert_eq!(column.sampler(settings::Phase::Stage1).frames, 3, "{name}");
+        assert_eq!(
+            column.sampler(settings::Phase::Stage2),
+            paper.sampler(settings::Phase::Stage2),
+            "{name}"
+        );
+        assert_eq!(column.stage1.schedule, paper.stage1.schedule, "{name}");
+        assert_eq!(column.stage2.schedule, paper.stage2.schedule, "{name}");
     }
 }

@@ -53,11 +53,19 @@ pub async fn load_frames_async(source: &str, size: usize) -> Result<Vec<Image>, 
 
 /// [`load_frames_async`] for callers outside an async runtime (the command-line tools).
 pub fn load_frames(source: &str, size: usize) -> Result<Vec<Image>, EvalError> {
-    let runtime = tokio::runtime::Builder::new_current_thread()
+    block_on(load_frames_async(source, size))
+}
+
+/// Runs a store read to completion on a runtime of its own, for callers outside one (the
+/// command-line tools and the worker's evaluation step).
+pub(crate) fn block_on<T>(
+    read: impl std::future::Future<Output = Result<T, EvalError>>,
+) -> Result<T, EvalError> {
+    tokio::runtime::Builder::new_current_thread()
         .enable_all()
         .build()
-        .map_err(|e| EvalError::Invalid(format!("cannot start an async runtime: {e}")))?;
-    runtime.block_on(load_frames_async(source, size))
+        .map_err(|e| EvalError::Invalid(format!("cannot start an async runtime: {e}")))?
+        .block_on(read)
 }
 
 #[cfg(test)]

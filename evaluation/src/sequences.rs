@@ -13,6 +13,7 @@ use settings::evaluation::SequenceProtocol;
 
 use crate::error::EvalError;
 use crate::evaluate::ReconstructionReport;
+use crate::frames::block_on;
 use crate::video::evenly_spaced;
 
 /// The protocol's frames of a `len`-frame sequence: `length` indices spread evenly over it,
@@ -116,11 +117,7 @@ pub async fn load_protocol_async(
 
 /// [`load_protocol_async`] for callers outside an async runtime.
 pub fn load_protocol(protocol: &SequenceProtocol, size: usize) -> Result<ProtocolSet, EvalError> {
-    let runtime = tokio::runtime::Builder::new_current_thread()
-        .enable_all()
-        .build()
-        .map_err(|e| EvalError::Invalid(format!("cannot start an async runtime: {e}")))?;
-    runtime.block_on(load_protocol_async(protocol, size))
+    block_on(load_protocol_async(protocol, size))
 }
 
 #[cfg(test)]

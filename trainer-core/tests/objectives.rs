@@ -51,6 +51,17 @@ fn sliding_triple(stream: &mut Stream) -> Vec<(u64, Image)> {
         .collect()
 }
 
+/// `mean |second - prediction|` over the second frames of `pairs`: the L1 loss by hand.
+fn mean_error_to_second_frames(pairs: &[(Image, Image)], prediction: Tensor<4>) -> f32 {
+    let seconds: Vec<f32> = pairs
+        .iter()
+        .flat_map(|(_, second)| second.pixels.iter().copied())
+        .collect();
+    let shape = [pairs.len(), SIDE, SIDE, 3];
+    let targets = Tensor::<4>::from_data(TensorData::new(seconds, shape), &prediction.device());
+    (targets - prediction).abs().mean().into_scalar::<f32>()
+}
+
 fn tiny_config() -> XFactorConfig {
     XFactorConfig::tiny(SIDE)
 }
@@ -254,12 +265,7 @@ fn autoencode_renders_the_other_frame_from_its_whole_image_latent() {
         PoseLatents::PerSegment(latents),
         Some(batch.mask.zeros_like()),
     );
-    let seconds: Vec<f32> = pairs
-        .iter()
-        .flat_map(|(_, second)| second.pixels.iter().copied())
-        .collect();
-    let targets = Tensor::<4>::from_data(TensorData::new(seconds, [4, SIDE, SIDE, 3]), &device);
-    let by_hand = (targets - prediction).abs().mean().into_scalar::<f32>();
+    let by_hand = mean_error_to_second_frames(&pairs, prediction);
     assert!((loss - by_hand).abs() <= 1e-6, "{loss} vs {by_hand}");
 }
 
@@ -415,12 +421,7 @@ fn se3_plucker_renders_the_other_frame_from_the_rays_of_its_camera() {
         PoseLatents::Single(both.clone()),
         None,
     );
-    let seconds: Vec<f32> = pairs
-        .iter()
-        .flat_map(|(_, second)| second.pixels.iter().copied())
-        .collect();
-    let targets = Tensor::<4>::from_data(TensorData::new(seconds, [4, SIDE, SIDE, 3]), &device);
-    let by_hand = (targets - prediction).abs().mean().into_scalar::<f32>();
+    let by_hand = mean_error_to_second_frames(&pairs, prediction);
     assert!((loss - by_hand).abs() <= 1e-6, "{loss} vs {by_hand}");
 
     // The views share the target's focal length: the context camera's own φ is not read;
