@@ -21,7 +21,11 @@ fi
 if ! command -v ffmpeg >/dev/null || ! command -v ffprobe >/dev/null; then
     apt_packages+=(ffmpeg)
 fi
-if ! python3 -c "import PIL, numpy" 2>/dev/null; then
+# apt installs them for the system interpreter, which the benchmark runs even where a version
+# manager (pyenv) puts another python3 first on PATH.
+system_python=/usr/bin/python3
+[ -x "$system_python" ] || system_python=python3
+if ! "$system_python" -c "import PIL, numpy" 2>/dev/null; then
     apt_packages+=(python3-pil python3-numpy)
 fi
 if [ "${#apt_packages[@]}" -gt 0 ]; then

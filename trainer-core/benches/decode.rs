@@ -78,19 +78,31 @@ fn flag<'a>(args: &'a [String], name: &str) -> Option<&'a str> {
         .map(String::as_str)
 }
 
+/// The interpreter `scripts/setup.sh` installs Pillow and NumPy for: the system's (apt
+/// packages), even where a version manager puts another `python3` first on `PATH`.
+fn system_python() -> &'static str {
+    const SYSTEM: &str = "/usr/bin/python3";
+    if Path::new(SYSTEM).is_file() {
+        SYSTEM
+    } else {
+        "python3"
+    }
+}
+
 /// Frames per second of the Python peer on `dir`, or why it could not run.
 fn pil_peer(dir: &str, size: usize, rounds: usize) -> Result<f64, String> {
     let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("benches/pil_decode.py");
-    let output = Command::new("python3")
+    let python = system_python();
+    let output = Command::new(python)
         .arg(&script)
         .arg(dir)
         .args(["--size", &size.to_string(), "--rounds", &rounds.to_string()])
         .output()
-        .map_err(|e| format!("cannot run python3: {e}"))?;
+        .map_err(|e| format!("cannot run {python}: {e}"))?;
     let stdout = String::from_utf8_lossy(&output.stdout);
     if !output.status.success() {
         return Err(format!(
-            "python3 {} failed (pillow and numpy installed?): {}",
+            "{python} {} failed (pillow and numpy installed?): {}",
             script.display(),
             String::from_utf8_lossy(&output.stderr).trim()
         ));
