@@ -95,17 +95,13 @@ fn run_name(report: &Path) -> String {
 
 /// `Rac`, `Tac` and AUC at `threshold` of `metrics`, as percentages.
 fn scores(metrics: &CameraMetrics, threshold: u32) -> [f64; 3] {
-    metrics
-        .thresholds
-        .iter()
-        .find(|s| s.threshold == threshold)
-        .map_or([f64::NAN; 3], |s| {
-            [
-                100.0 * s.rotation_accuracy,
-                100.0 * s.translation_accuracy,
-                100.0 * s.auc,
-            ]
-        })
+    metrics.at(threshold).map_or([f64::NAN; 3], |s| {
+        [
+            100.0 * s.rotation_accuracy,
+            100.0 * s.translation_accuracy,
+            100.0 * s.auc,
+        ]
+    })
 }
 
 /// A row's six values in [`MEASURES`] order.

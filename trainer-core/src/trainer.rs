@@ -279,19 +279,16 @@ impl Trainer {
                     }
                     (StageObjective::Stage2(objective), Samples::Views(views)) => Ok(objective
                         .batch(&views[begin..end], seed, step, offset, patch, &self.device)),
-                    (StageObjective::Stage1(objective), Samples::Pairs(_)) => {
+                    // The guards above took the samples each stage-1 variant wants.
+                    (StageObjective::Stage1(_), Samples::Pairs(_)) => {
                         Err(TrainError::WrongSamples {
-                            expected: if objective.variant.stage1_frames() == 3 {
-                                "three-frame stage-1"
-                            } else {
-                                "stage-1"
-                            },
+                            expected: "three-frame stage-1",
                             found: "pair",
                         })
                     }
                     (StageObjective::Stage1(_), Samples::Views(_)) => {
                         Err(TrainError::WrongSamples {
-                            expected: "stage-1",
+                            expected: "stage-1 pair",
                             found: "multi-view",
                         })
                     }
