@@ -8,7 +8,10 @@
 #   (trainer-core/benches/pil_decode.py) runs on;
 # - moto's S3 server (PyPI `moto[server]`, pinned) in a virtual environment in the persistent
 #   cache, which the S3 integration tests start on loopback. Those tests fail, not skip, when
-#   it is missing, so this step fails loudly too.
+#   it is missing, so this step fails loudly too;
+# - TensorBoard (PyPI `tensorboard`, pinned; no TensorFlow) in another virtual environment,
+#   whose EventAccumulator the TensorBoard test reads the coordinator's event files with, and
+#   whose `tensorboard --logdir` shows them.
 set -euo pipefail
 
 sudo_cmd=""
@@ -35,17 +38,30 @@ if [ "${#apt_packages[@]}" -gt 0 ]; then
         "${apt_packages[@]}" >/dev/null
 fi
 
+# A virtual environment at $1 (made once; Debian's python3 has venv in a separate package).
+make_venv() {
+    if [ -x "$1/bin/pip" ]; then return; fi
+    if ! python3 -m venv "$1" >/dev/null 2>&1; then
+        $sudo_cmd apt-get update -qq
+        DEBIAN_FRONTEND=noninteractive $sudo_cmd apt-get install -y -qq --no-install-recommends \
+            python3-venv >/dev/null
+        rm -rf "$1"
+        python3 -m venv "$1"
+    fi
+}
+
 moto_version="5.2.1"
 s3_env="${XDG_CACHE_HOME:-$HOME/.cache}/xfactor-dist/s3-env"
 if ! "$s3_env/bin/python" -c "import moto, sys; sys.exit(moto.__version__ != '$moto_version')" 2>/dev/null; then
     echo "setup: installing moto[server]==$moto_version into $s3_env" >&2
-    if ! python3 -m venv "$s3_env" >/dev/null 2>&1; then
-        # Debian's python3 has venv in a separate package.
-        $sudo_cmd apt-get update -qq
-        DEBIAN_FRONTEND=noninteractive $sudo_cmd apt-get install -y -qq --no-install-recommends \
-            python3-venv >/dev/null
-        rm -rf "$s3_env"
-        python3 -m venv "$s3_env"
-    fi
+    make_venv "$s3_env"
     "$s3_env/bin/pip" install --quiet --disable-pip-version-check "moto[server]==$moto_version"
+fi
+
+tensorboard_version="2.20.0"
+tensorboard_env="${XDG_CACHE_HOME:-$HOME/.cache}/xfactor-dist/tensorboard-env"
+if ! "$tensorboard_env/bin/python" -c "import tensorboard, sys; sys.exit(tensorboard.__version__ != '$tensorboard_version')" 2>/dev/null; then
+    echo "setup: installing tensorboard==$tensorboard_version into $tensorboard_env" >&2
+    make_venv "$tensorboard_env"
+    "$tensorboard_env/bin/pip" install --quiet --disable-pip-version-check "tensorboard==$tensorboard_version"
 fi

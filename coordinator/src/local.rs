@@ -43,6 +43,8 @@ pub struct LocalJob {
     pub checkpoint_every: u64,
     /// Coordinator port.
     pub port: u16,
+    /// The host the coordinator listens on (workers of this harness dial loopback).
+    pub listen_host: String,
     /// Seed of data and training.
     pub seed: u64,
     /// A worker stuck in its step this long while a peer waits for it is removed.
@@ -92,6 +94,7 @@ impl LocalJob {
             micro_batch: 4,
             checkpoint_every: 5,
             port,
+            listen_host: "127.0.0.1".into(),
             seed: 7,
             stall_timeout_s: 60.0,
             in_memory: false,
@@ -179,7 +182,7 @@ impl LocalJob {
         let mut yaml = String::new();
         let _ = writeln!(yaml, "job: local-demo");
         let _ = writeln!(yaml, "seed: {}", self.seed);
-        let _ = writeln!(yaml, "listen: 127.0.0.1:{}", self.port);
+        let _ = writeln!(yaml, "listen: {}:{}", self.listen_host, self.port);
         let _ = writeln!(yaml, "auth:\n  token: {}", self.token());
         let _ = writeln!(
             yaml,

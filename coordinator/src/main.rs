@@ -15,7 +15,17 @@ use telemetry::logging::LogArgs;
 
 /// Runs a job from a cluster YAML, or prints a running job's status.
 #[derive(Debug, Parser)]
-#[command(name = "xfactor-coordinator", version)]
+#[command(
+    name = "xfactor-coordinator",
+    version = telemetry::VERSION,
+    after_help = "Examples:
+  check a cluster YAML and print the plan:
+    xfactor-coordinator run --config deploy/examples/local.yaml --dry-run
+  run the job (workers then join with xfactor-worker --coordinator http://HOST:50051):
+    xfactor-coordinator run --config cluster.yaml --report report.json
+  a running job's progress:
+    xfactor-coordinator status --address http://HOST:50051 --token-env XFACTOR_TOKEN"
+)]
 struct Cli {
     #[command(subcommand)]
     command: Command,
@@ -105,6 +115,8 @@ async fn run(args: &RunArgs) -> anyhow::Result<()> {
             _ = tokio::signal::ctrl_c() => {}
         }
     };
+    let suspender = service.suspender();
+    tokio::spawn(suspend_on_usr1(suspender.clone()));
     let report = service.run(&token, shutdown).await?;
     let json = serde_json::to_string_pretty(&report)?;
     if let Some(path) = &args.report {
@@ -112,6 +124,13 @@ async fn run(args: &RunArgs) -> anyhow::Result<()> {
             .with_context(|| format!("writing the report to {}", path.display()))?;
     }
     tracing::info!(outcome = %report.outcome, restarts = report.restarts, mismatches = report.checksum_mismatches.len(), "job ended");
+    if suspender.is_cancelled() {
+        tracing::warn!(
+            code = SUSPENDED_EXIT_CODE,
+            "suspended: rerun or requeue the job to resume from its last commit"
+        );
+        std::process::exit(SUSPENDED_EXIT_CODE);
+    }
     if let Some(reason) = report.outcome.strip_prefix("failed: ") {
         bail!("the job failed: {reason}");
     }
@@ -125,6 +144,26 @@ async fn run(args: &RunArgs) -> anyhow::Result<()> {
         );
     }
     Ok(())
+}
+
+/// The exit status of a suspended job (`EX_TEMPFAIL`): the batch script requeues on it.
+const SUSPENDED_EXIT_CODE: i32 = 75;
+
+/// Suspends the job on SIGUSR1, which Slurm sends before the time limit
+/// (`--signal=B:USR1@90`, forwarded by `deploy/slurm/xfactor.sbatch`).
+async fn suspend_on_usr1(suspender: tokio_util::sync::CancellationToken) {
+    let Ok(mut usr1) =
+        tokio::signal::unix::signal(tokio::signal::unix::SignalKind::user_defined1())
+    else {
+        tracing::warn!(
+            "SIGUSR1 cannot be caught; a batch system's warning will not suspend the job"
+        );
+        return;
+    };
+    if usr1.recv().await.is_some() {
+        tracing::warn!("SIGUSR1: suspending the job");
+        suspender.cancel();
+    }
 }
 
 async fn status(args: &StatusArgs) -> anyhow::Result<()> {

@@ -138,6 +138,9 @@ fn help_lists_every_flag_with_its_default() {
             ("--global-batch", Some(&global_batch)),
             ("--micro-batch", Some(&micro_batch)),
             ("--no-evaluate", None),
+            ("--prepare-only", None),
+            ("--port", None),
+            ("--listen-host", Some("127.0.0.1")),
             ("--log-format", Some("human")),
         ],
     );

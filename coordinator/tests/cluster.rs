@@ -276,7 +276,7 @@ fn metrics_are_scraped_from_the_coordinator_and_both_workers_mid_run() {
         let csv = std::fs::read_to_string(curves.join(format!("stage{stage}.csv"))).unwrap();
         let steps = if stage == 1 { 12 } else { 3 };
         assert_eq!(csv.lines().count(), steps + 1, "{csv}");
-        assert!(csv.starts_with("step,loss,learning_rate\n"));
+        assert!(csv.starts_with("step,loss,learning_rate,l1,lpips,grad_norm\n"));
         let png = image::open(curves.join(format!("stage{stage}.png"))).unwrap();
         assert!(png.width() > 100 && png.height() > 100);
     }

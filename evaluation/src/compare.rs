@@ -180,12 +180,17 @@ pub fn markdown(runs: &[ComparedRun], threshold: u32) -> String {
 /// per run.
 pub fn chart(runs: &[ComparedRun], threshold: u32) -> BarChart {
     BarChart {
-        measures: MEASURES.len(),
-        series: runs.iter().map(|r| row(r, threshold).to_vec()).collect(),
+        title: format!("Runs compared at {threshold}°"),
+        y_label: "score (%)".into(),
+        measures: MEASURES.iter().map(|m| (*m).to_string()).collect(),
+        series: runs
+            .iter()
+            .map(|r| (r.label.clone(), row(r, threshold).to_vec()))
+            .collect(),
     }
 }
 
-/// Writes `compare.md` and `compare.png` into `out` (created if needed); returns the Markdown.
+/// Writes `compare.md`, `compare.png` and `compare.svg` into `out` (created if needed); returns the Markdown.
 pub fn write_comparison(
     runs: &[ComparedRun],
     threshold: u32,
@@ -196,11 +201,13 @@ pub fn write_comparison(
     let text = markdown(runs, threshold);
     let md = out.join("compare.md");
     std::fs::write(&md, &text).map_err(|e| io_error(&md, e))?;
+    let chart = chart(runs, threshold);
     let png = out.join("compare.png");
-    let bytes = chart(runs, threshold)
-        .to_png()
-        .map_err(|e| io_error(&png, e))?;
+    let bytes = chart.to_png().map_err(|e| io_error(&png, e))?;
     std::fs::write(&png, bytes).map_err(|e| io_error(&png, e))?;
+    let svg = out.join("compare.svg");
+    let document = chart.to_svg().map_err(|e| io_error(&svg, e))?;
+    std::fs::write(&svg, document).map_err(|e| io_error(&svg, e))?;
     Ok(text)
 }
 

@@ -283,7 +283,11 @@ fn evaluate_model(
         {
             save(format!("{prefix}_tps_paths.png"), &|p| {
                 Ok(save_camera_paths(
-                    &[reference.clone(), rendered.clone()],
+                    &format!("{prefix} model: source path and the path of its renders"),
+                    &[
+                        ("source video (oracle poses)", &reference[..]),
+                        ("renders (oracle poses)", &rendered[..]),
+                    ],
                     p,
                 )?)
             })?;
@@ -304,7 +308,11 @@ fn evaluate_model(
     if let Some((reference, predicted)) = paths.first() {
         save(format!("{prefix}_probe_paths.png"), &|p| {
             Ok(save_camera_paths(
-                &[reference.clone(), predicted.clone()],
+                &format!("{prefix} model: pose probe on a held-out sequence"),
+                &[
+                    ("ground truth", &reference[..]),
+                    ("probe prediction", &predicted[..]),
+                ],
                 p,
             )?)
         })?;

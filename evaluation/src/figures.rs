@@ -1,5 +1,5 @@
 //! Pictures for people: frames as PNG, render grids, strips, animated GIFs and top-down plots of
-//! camera paths, drawn with the `image` crate alone.
+//! camera paths (the plots through `telemetry::plot`).
 
 use std::path::{Path, PathBuf};
 
@@ -7,15 +7,12 @@ use data::Image;
 use data::scenes::CameraPose;
 use image::codecs::gif::{GifEncoder, Repeat};
 use image::{Delay, Frame, Rgb, RgbImage, RgbaImage};
+use telemetry::plot::{Figure, Panel, Series};
 
 /// Gap between tiles of grids and strips, in pixels.
 const GAP: u32 = 2;
 /// Side of camera-path plots, in pixels.
-const PLOT_SIDE: u32 = 320;
-/// Empty border around the plotted paths, in pixels.
-const PLOT_MARGIN: f64 = 20.0;
-/// Colours of successive paths in a plot: reference first (black), then the evaluated ones.
-const PATH_COLOURS: [[u8; 3]; 4] = [[0, 0, 0], [220, 40, 40], [40, 90, 220], [30, 160, 60]];
+const PLOT_SIDE: u32 = 520;
 
 /// Why a figure could not be written.
 #[derive(Debug, thiserror::Error)]
@@ -105,92 +102,48 @@ pub fn save_gif(frames: &[Image], path: &Path, delay_ms: u32) -> Result<(), Figu
         .map_err(|e| figure_error(path, e))
 }
 
-fn put(canvas: &mut RgbImage, x: i64, y: i64, colour: [u8; 3]) {
-    if x >= 0 && y >= 0 && x < i64::from(canvas.width()) && y < i64::from(canvas.height()) {
-        canvas.put_pixel(x as u32, y as u32, Rgb(colour));
-    }
-}
-
-fn line(canvas: &mut RgbImage, from: (f64, f64), to: (f64, f64), colour: [u8; 3]) {
-    let steps = (to.0 - from.0)
-        .abs()
-        .max((to.1 - from.1).abs())
-        .ceil()
-        .max(1.0) as usize;
-    for k in 0..=steps {
-        let u = k as f64 / steps as f64;
-        let x = from.0 + u * (to.0 - from.0);
-        let y = from.1 + u * (to.1 - from.1);
-        put(canvas, x.round() as i64, y.round() as i64, colour);
-    }
-}
-
-fn dot(canvas: &mut RgbImage, at: (f64, f64), radius: i64, colour: [u8; 3]) {
-    for dy in -radius..=radius {
-        for dx in -radius..=radius {
-            put(
-                canvas,
-                at.0.round() as i64 + dx,
-                at.1.round() as i64 + dy,
-                colour,
-            );
-        }
-    }
-}
-
-/// A top-down view (world x to the right, world z up the page) of camera centres: one path per
-/// entry, the first drawn black (the reference), the others in colour; each path starts at a
-/// larger square and its cameras' viewing directions are short ticks.
-pub fn camera_paths(paths: &[Vec<CameraPose>]) -> RgbImage {
-    let mut canvas = RgbImage::from_pixel(PLOT_SIDE, PLOT_SIDE, Rgb([255, 255, 255]));
-    let centres: Vec<Vec<[f64; 3]>> = paths
+/// A top-down view of camera centres (world x to the right, world z up), one named line per
+/// path, drawn with plotters with equal units on both axes; `title` says what is compared.
+pub fn camera_paths(
+    title: &str,
+    paths: &[(&str, &[CameraPose])],
+) -> Result<Vec<u8>, telemetry::plot::PlotError> {
+    let series = paths
         .iter()
-        .map(|p| p.iter().map(CameraPose::center).collect())
+        .map(|(name, poses)| Series {
+            name: (*name).into(),
+            points: poses
+                .iter()
+                .map(|pose| {
+                    let centre = pose.center();
+                    (centre[0], centre[2])
+                })
+                .collect(),
+        })
         .collect();
-    let all = centres.iter().flatten();
-    let (mut lo_x, mut hi_x, mut lo_z, mut hi_z) = (f64::MAX, f64::MIN, f64::MAX, f64::MIN);
-    for c in all {
-        lo_x = lo_x.min(c[0]);
-        hi_x = hi_x.max(c[0]);
-        lo_z = lo_z.min(c[2]);
-        hi_z = hi_z.max(c[2]);
+    Figure {
+        title: title.into(),
+        panels: vec![Panel {
+            title: "camera centres, top view".into(),
+            x_label: "x (scene units)".into(),
+            y_label: "z (scene units)".into(),
+            log_y: false,
+            equal_aspect: true,
+            series,
+        }],
+        panel_size: (PLOT_SIDE, PLOT_SIDE),
     }
-    let span = (hi_x - lo_x).max(hi_z - lo_z).max(1e-9);
-    let usable = f64::from(PLOT_SIDE) - 2.0 * PLOT_MARGIN;
-    let scale = usable / span;
-    let (mid_x, mid_z) = ((lo_x + hi_x) / 2.0, (lo_z + hi_z) / 2.0);
-    let half = f64::from(PLOT_SIDE) / 2.0;
-    let project = |x: f64, z: f64| (half + (x - mid_x) * scale, half - (z - mid_z) * scale);
-    for (index, (path, poses)) in centres.iter().zip(paths).enumerate() {
-        let colour = PATH_COLOURS[index % PATH_COLOURS.len()];
-        for pair in path.windows(2) {
-            line(
-                &mut canvas,
-                project(pair[0][0], pair[0][2]),
-                project(pair[1][0], pair[1][2]),
-                colour,
-            );
-        }
-        for (k, (c, pose)) in path.iter().zip(poses).enumerate() {
-            let at = project(c[0], c[2]);
-            dot(&mut canvas, at, if k == 0 { 3 } else { 1 }, colour);
-            let forward = pose.rotation[2];
-            let norm = forward[0].hypot(forward[2]).max(1e-9);
-            let tip = (
-                at.0 + 8.0 * forward[0] / norm,
-                at.1 - 8.0 * forward[2] / norm,
-            );
-            line(&mut canvas, at, tip, colour);
-        }
-    }
-    canvas
+    .to_png()
 }
 
 /// Writes a camera-path plot (see [`camera_paths`]) as PNG.
-pub fn save_camera_paths(paths: &[Vec<CameraPose>], path: &Path) -> Result<(), FigureError> {
-    camera_paths(paths)
-        .save(path)
-        .map_err(|e| figure_error(path, e))
+pub fn save_camera_paths(
+    title: &str,
+    paths: &[(&str, &[CameraPose])],
+    path: &Path,
+) -> Result<(), FigureError> {
+    let png = camera_paths(title, paths).map_err(|e| figure_error(path, e))?;
+    std::fs::write(path, png).map_err(|e| figure_error(path, e))
 }
 
 #[cfg(test)]
@@ -215,8 +168,9 @@ mod tests {
             CameraPose::look_at([0.0, 0.0, 0.0], [0.0, 0.0, 1.0]),
             CameraPose::look_at([1.0, 0.0, 1.0], [1.0, 0.0, 2.0]),
         ];
-        let plot = camera_paths(&[reference]);
+        let png = camera_paths("paths", &[("reference", &reference[..])]).expect("drawn");
+        let plot = image::load_from_memory(&png).expect("a PNG").to_rgb8();
         let inked = plot.pixels().filter(|p| p.0 != [255, 255, 255]).count();
-        assert!(inked > 50, "{inked}");
+        assert!(inked > 500, "{inked}");
     }
 }

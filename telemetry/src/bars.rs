@@ -1,97 +1,134 @@
-//! Grouped bar charts drawn to PNG: one group per measure, one bar per series (a run, say),
-//! each bar labelled with its value in small digits and the series told apart by colour and by
-//! their number in the legend (the caller's table names them).
+//! Grouped bar charts (one group per measure, one bar per series, each bar labelled with its
+//! value), drawn with `plotters` with a title, a value axis name, the measures named under
+//! their groups and a legend naming the series.
 
-use image::{Rgb, RgbImage};
+use plotters::coord::Shift;
+use plotters::prelude::*;
+use plotters::style::text_anchor::{HPos, Pos, VPos};
 
-use crate::curves::CurveError;
-use crate::draw::{PALETTE, encode_png, line, swatch, text};
+use crate::plot::{DrawResult, FAMILY, PALETTE, PlotError, boxed, render_png, render_svg};
 
 /// Values of several series over the same measures.
 #[derive(Debug, Clone, PartialEq)]
 pub struct BarChart {
-    /// How many measures (groups of bars) there are.
-    pub measures: usize,
-    /// One value per measure for each series; a value that is not finite draws no bar.
-    pub series: Vec<Vec<f64>>,
+    /// The chart's title.
+    pub title: String,
+    /// The value axis's name and unit.
+    pub y_label: String,
+    /// The measures' names, one group of bars each.
+    pub measures: Vec<String>,
+    /// `(name, one value per measure)` for each series (a run, say); a value that is not
+    /// finite draws no bar.
+    pub series: Vec<(String, Vec<f64>)>,
 }
 
-const BAR_WIDTH: u32 = 14;
-const BAR_GAP: u32 = 2;
-const GROUP_GAP: u32 = 24;
-const PLOT_HEIGHT: u32 = 240;
-const MARGIN: u32 = 40;
-const BACKGROUND: Rgb<u8> = Rgb([255, 255, 255]);
-const AXIS: Rgb<u8> = Rgb([60, 60, 60]);
+/// Fraction of a group's width its bars take.
+const GROUP_FILL: f64 = 0.8;
 
 impl BarChart {
-    /// The PNG: bars scaled to the largest value, each with its value written above it (one
-    /// decimal), a legend of numbered swatches (series 1, 2, ...) and the measure number
-    /// under each group.
-    pub fn to_png(&self) -> Result<Vec<u8>, CurveError> {
-        let bars = self.series.len().max(1) as u32;
-        let group_width = bars * (BAR_WIDTH + BAR_GAP) + GROUP_GAP;
-        let width = 2 * MARGIN + self.measures.max(1) as u32 * group_width;
-        let height = PLOT_HEIGHT + 3 * MARGIN;
-        let mut canvas = RgbImage::from_pixel(width, height, BACKGROUND);
-        let top = (2 * MARGIN) as i64;
-        let bottom = top + PLOT_HEIGHT as i64;
+    fn size(&self) -> (u32, u32) {
+        let bars = self.measures.len().max(1) * self.series.len().max(1);
+        ((240 + 26 * bars as u32).max(640), 480)
+    }
+
+    /// Left and right edge of series `index`'s bar in group `measure` (groups are centred on
+    /// whole numbers).
+    fn bar_span(&self, measure: usize, index: usize) -> (f64, f64) {
+        let width = GROUP_FILL / self.series.len().max(1) as f64;
+        let left = measure as f64 - GROUP_FILL / 2.0 + index as f64 * width;
+        (left, left + width)
+    }
+
+    /// The chart as PNG bytes.
+    pub fn to_png(&self) -> Result<Vec<u8>, PlotError> {
+        render_png(&self.title, self.size(), |root| self.draw(root))
+    }
+
+    /// The chart as an SVG document.
+    pub fn to_svg(&self) -> Result<String, PlotError> {
+        render_svg(&self.title, self.size(), |root| self.draw(root))
+    }
+
+    fn draw<DB: DrawingBackend>(&self, root: &DrawingArea<DB, Shift>) -> DrawResult
+    where
+        DB::ErrorType: 'static,
+    {
+        root.fill(&WHITE).map_err(boxed)?;
         let highest = self
             .series
             .iter()
-            .flatten()
-            .copied()
+            .flat_map(|(_, values)| values.iter().copied())
             .filter(|v| v.is_finite())
             .fold(0.0f64, f64::max);
-        let scale = if highest > 0.0 {
-            PLOT_HEIGHT as f64 / highest
-        } else {
-            0.0
-        };
-        line(
-            &mut canvas,
-            (MARGIN as i64, bottom),
-            ((width - MARGIN) as i64, bottom),
-            AXIS,
-        );
-        for (index, values) in self.series.iter().enumerate() {
-            let colour = PALETTE[index % PALETTE.len()];
-            let legend_x = MARGIN as i64 + index as i64 * 40;
-            swatch(&mut canvas, (legend_x, MARGIN as i64 / 2), colour);
-            text(
-                &mut canvas,
-                (legend_x + 11, MARGIN as i64 / 2 + 2),
-                &(index + 1).to_string(),
-                AXIS,
-            );
-            for (measure, value) in values.iter().enumerate().take(self.measures) {
-                if !value.is_finite() {
-                    continue;
-                }
-                let left = (MARGIN + measure as u32 * group_width) as i64
-                    + index as i64 * (BAR_WIDTH + BAR_GAP) as i64;
-                let bar_top = bottom - (value.max(0.0) * scale).round() as i64;
-                for x in left..left + BAR_WIDTH as i64 {
-                    line(&mut canvas, (x, bar_top), (x, bottom), colour);
-                }
-                text(
-                    &mut canvas,
-                    (left, bar_top - 8),
-                    &format!("{value:.1}"),
-                    AXIS,
-                );
+        let top = if highest > 0.0 { highest * 1.2 } else { 1.0 };
+        let groups = self.measures.len().max(1);
+        let mut chart = ChartBuilder::on(root)
+            .caption(&self.title, (FAMILY, 22).into_font())
+            .margin(14)
+            .x_label_area_size(40)
+            .y_label_area_size(70)
+            .build_cartesian_2d(-0.5..groups as f64 - 0.5, 0.0..top)
+            .map_err(boxed)?;
+        let names = &self.measures;
+        let measure_name = |x: &f64| {
+            let nearest = x.round();
+            match names.get(nearest as usize) {
+                Some(name) if (x - nearest).abs() < 1e-6 && nearest >= 0.0 => name.clone(),
+                _ => String::new(),
             }
+        };
+        chart
+            .configure_mesh()
+            .disable_x_mesh()
+            .x_labels(groups + 1)
+            .x_label_formatter(&measure_name)
+            .y_desc(&self.y_label)
+            .label_style((FAMILY, 13).into_font())
+            .axis_desc_style((FAMILY, 15).into_font())
+            .light_line_style(RGBColor(235, 235, 235))
+            .draw()
+            .map_err(boxed)?;
+        let value_style =
+            TextStyle::from((FAMILY, 12).into_font()).pos(Pos::new(HPos::Center, VPos::Bottom));
+        for (index, (name, values)) in self.series.iter().enumerate() {
+            let colour = PALETTE[index % PALETTE.len()];
+            let bars: Vec<(usize, f64)> = values
+                .iter()
+                .copied()
+                .enumerate()
+                .take(self.measures.len())
+                .filter(|(_, v)| v.is_finite())
+                .collect();
+            chart
+                .draw_series(bars.iter().map(|&(measure, value)| {
+                    let (left, right) = self.bar_span(measure, index);
+                    Rectangle::new([(left, 0.0), (right, value.max(0.0))], colour.filled())
+                }))
+                .map_err(boxed)?
+                .label(name.as_str())
+                .legend(move |(x, y)| {
+                    Rectangle::new([(x, y - 6), (x + 14, y + 6)], colour.filled())
+                });
+            chart
+                .draw_series(bars.iter().map(|&(measure, value)| {
+                    let (left, right) = self.bar_span(measure, index);
+                    Text::new(
+                        format!("{value:.1}"),
+                        ((left + right) / 2.0, value.max(0.0)),
+                        value_style.clone(),
+                    )
+                }))
+                .map_err(boxed)?;
         }
-        for measure in 0..self.measures {
-            let x = (MARGIN + measure as u32 * group_width) as i64;
-            text(
-                &mut canvas,
-                (x, bottom + 6),
-                &(measure + 1).to_string(),
-                AXIS,
-            );
-        }
-        encode_png(&canvas).map_err(CurveError::from)
+        chart
+            .configure_series_labels()
+            .label_font((FAMILY, 13).into_font())
+            .background_style(WHITE.mix(0.85))
+            .border_style(RGBColor(160, 160, 160))
+            .position(SeriesLabelPosition::UpperRight)
+            .draw()
+            .map_err(boxed)?;
+        Ok(())
     }
 }
 
@@ -99,32 +136,49 @@ impl BarChart {
 mod tests {
     use super::*;
 
+    fn chart() -> BarChart {
+        BarChart {
+            title: "Runs".into(),
+            y_label: "score (%)".into(),
+            measures: vec!["rot".into(), "trans".into()],
+            series: vec![
+                ("xfactor".into(), vec![50.0, 100.0]),
+                ("autoencode".into(), vec![25.0, f64::NAN]),
+            ],
+        }
+    }
+
     #[test]
     fn bars_are_as_tall_as_their_values_and_coloured_by_series() {
-        let chart = BarChart {
-            measures: 2,
-            series: vec![vec![50.0, 100.0], vec![25.0, f64::NAN]],
-        };
-        let png = image::load_from_memory(&chart.to_png().unwrap())
-            .unwrap()
+        let png = image::load_from_memory(&chart().to_png().expect("drawn"))
+            .expect("a PNG")
             .to_rgb8();
-        let group_width = 2 * (BAR_WIDTH + BAR_GAP) + GROUP_GAP;
-        assert_eq!(png.width(), 2 * MARGIN + 2 * group_width);
-        let bottom = 2 * MARGIN + PLOT_HEIGHT;
-        // Height of the bar whose left column is `x`: pixels of `colour` above the axis.
-        let height = |x: u32, colour: Rgb<u8>| {
-            (2 * MARGIN..bottom)
-                .filter(|&y| *png.get_pixel(x + BAR_WIDTH / 2, y) == colour)
-                .count() as u32
+        let count = |colour: RGBColor| {
+            png.pixels()
+                .filter(|p| p.0 == [colour.0, colour.1, colour.2])
+                .count() as f64
         };
-        let second = MARGIN + BAR_WIDTH + BAR_GAP;
-        assert_eq!(height(MARGIN, PALETTE[0]), PLOT_HEIGHT / 2);
-        assert_eq!(height(MARGIN + group_width, PALETTE[0]), PLOT_HEIGHT);
-        assert_eq!(height(second, PALETTE[1]), PLOT_HEIGHT / 4);
-        assert_eq!(
-            height(second + group_width, PALETTE[1]),
-            0,
-            "NaN draws no bar"
-        );
+        // Series 0 has bars of 50 and 100, series 1 one bar of 25 (NaN draws none): their
+        // areas (same width) are 150 : 25, plus a legend swatch each.
+        let ratio = count(PALETTE[0]) / count(PALETTE[1]);
+        assert!((4.0..7.0).contains(&ratio), "area ratio {ratio}");
+    }
+
+    #[test]
+    fn the_svg_names_title_measures_series_and_values() {
+        let svg = chart().to_svg().expect("drawn");
+        for text in [
+            "Runs",
+            "score (%)",
+            "rot",
+            "trans",
+            "xfactor",
+            "autoencode",
+            "50.0",
+            "25.0",
+        ] {
+            assert!(svg.contains(&format!(">\n{text}\n<")), "{text} missing");
+        }
+        assert!(!svg.contains("NaN"));
     }
 }

@@ -87,6 +87,18 @@ pub struct StepMetrics {
     pub applied: bool,
 }
 
+/// The loss of a slice of the global batch and its terms, each weighted `1 / global_batch` per
+/// sample as the gradients are, so the data-parallel ranks' values sum to the global batch's.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct SliceLoss {
+    /// `l1 + w * lpips`, the loss the gradients are of.
+    pub total: f32,
+    /// The L1 term.
+    pub l1: f32,
+    /// The LPIPS term before its weight; NaN when the stage trains without LPIPS.
+    pub lpips: f32,
+}
+
 /// `state.json` of a checkpoint directory; the importer of release checkpoints writes it too.
 #[derive(Debug, Serialize, Deserialize)]
 pub(crate) struct TrainerState {
@@ -169,6 +181,7 @@ impl Trainer {
         source: &dyn BatchSource,
     ) -> Result<(f32, GradientsParams), TrainError> {
         self.slice_gradients(source, 0, self.config.global_batch)
+            .map(|(loss, grads)| (loss.total, grads))
     }
 
     /// This process's share of the current step: the loss and gradients of global samples
@@ -180,24 +193,30 @@ impl Trainer {
         source: &dyn BatchSource,
         first: u64,
         count: usize,
-    ) -> Result<(f32, GradientsParams), TrainError> {
+    ) -> Result<(SliceLoss, GradientsParams), TrainError> {
         let step = self.step;
         let _span = tracing::info_span!("slice_gradients", step, first, count).entered();
         let micro = self.config.micro_batch;
-        let mut total_loss = 0.0;
+        let mut loss = SliceLoss {
+            total: 0.0,
+            l1: 0.0,
+            lpips: if self.lpips.is_some() { 0.0 } else { f32::NAN },
+        };
         let mut accumulated: Option<GradientsParams> = None;
         for offset in (0..count).step_by(micro) {
             let size = micro.min(count - offset);
             let share = size as f64 / self.config.global_batch as f64;
             let batch = self.assemble(source, step, first + offset as u64, size)?;
-            let (loss, grads) = self.micro_batch_gradients(&batch, share);
-            total_loss += loss;
+            let (micro_loss, grads) = self.micro_batch_gradients(&batch, share);
+            loss.total += micro_loss.total;
+            loss.l1 += micro_loss.l1;
+            loss.lpips += micro_loss.lpips;
             accumulated = Some(match accumulated {
                 None => grads,
                 Some(sum) => add_gradients(&self.model, sum, grads),
             });
         }
-        Ok((total_loss, accumulated.unwrap_or_default()))
+        Ok((loss, accumulated.unwrap_or_default()))
     }
 
     /// The model configuration being trained.
@@ -307,15 +326,40 @@ impl Trainer {
         &self,
         shards: &[ObjectiveBatch],
         share: f64,
-    ) -> (f32, GradientsParams) {
+    ) -> (SliceLoss, GradientsParams) {
         let total: usize = shards.iter().map(|b| b.target.dims()[0]).sum();
         let weight = self.config.objective.lpips_weight();
         let lpips = self.lpips.as_ref();
-        sharded_gradients(&self.model, shards.len(), |copy, shard| {
+        // The terms are read on the side: the shards' threads add their weighted values here.
+        let terms = std::sync::Mutex::new((0.0f32, 0.0f32));
+        let (loss, grads) = sharded_gradients(&self.model, shards.len(), |copy, shard| {
             let batch = &shards[shard];
-            let fraction = batch.target.dims()[0] as f64 / total as f64;
-            objective_loss(copy, lpips, weight, batch).total * (fraction * share)
-        })
+            let scale = batch.target.dims()[0] as f64 / total as f64 * share;
+            let loss = objective_loss(copy, lpips, weight, batch);
+            let l1 = loss.l1.into_scalar::<f32>() * scale as f32;
+            let lpips = loss
+                .lpips
+                .map_or(0.0, |d| d.into_scalar::<f32>() * scale as f32);
+            if let Ok(mut sums) = terms.lock() {
+                sums.0 += l1;
+                sums.1 += lpips;
+            }
+            loss.total * scale
+        });
+        let (l1, lpips_sum) = terms.into_inner().unwrap_or_default();
+        let lpips = if self.lpips.is_some() {
+            lpips_sum
+        } else {
+            f32::NAN
+        };
+        (
+            SliceLoss {
+                total: loss,
+                l1,
+                lpips,
+            },
+            grads,
+        )
     }
 
     /// Writes weights, optimiser moments and the step into `dir` (created if needed); files are

@@ -93,6 +93,10 @@ pub enum Ending {
     Done,
     /// SIGTERM arrived; the last step finished cleanly and nothing is half-committed.
     Stopping,
+    /// The coordinator suspends the job: this worker's part is committed (rank 0) or needs
+    /// nothing more (the others); it exits without leaving, so the generation stays whole
+    /// until the commit is in.
+    Suspended,
 }
 
 /// What every generation of this worker shares.
@@ -215,6 +219,12 @@ pub fn run(options: WorkerOptions) -> anyhow::Result<()> {
                 drop(_entered);
                 return leave(&runtime, &mut client, &progress);
             }
+            Ok(Ending::Suspended) => {
+                tracing::warn!(
+                    "the coordinator suspended the job; exiting (a requeued job resumes from its last commit)"
+                );
+                return Ok(());
+            }
             Err(error) => {
                 failures += 1;
                 progress.metrics.add(&metrics::RESTARTS, &[], 1.0);
@@ -264,9 +274,11 @@ async fn serve_collective(
         .with_context(|| format!("cannot listen on {}", options.listen))?;
     let bound: SocketAddr = listener.local_addr()?;
     let health = spawn_server(listener, service, link)?;
-    let advertised = options
-        .advertise
-        .clone()
-        .unwrap_or_else(|| bound.to_string());
+    let advertised = match &options.advertise {
+        // A host alone (a Slurm node's name) takes the port bound here.
+        Some(host) if !host.contains(':') => format!("{host}:{}", bound.port()),
+        Some(address) => address.clone(),
+        None => bound.to_string(),
+    };
     Ok((advertised, health))
 }

@@ -15,4 +15,5 @@ pub mod health;
 pub mod metrics;
 pub mod session;
 pub mod shutdown;
+pub mod slurm;
 pub mod training;

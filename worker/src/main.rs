@@ -5,7 +5,7 @@ use std::path::PathBuf;
 use std::time::Duration;
 
 use anyhow::Context;
-use clap::{Parser, Subcommand, ValueEnum};
+use clap::{CommandFactory, Parser, Subcommand, ValueEnum};
 use proto::auth::TokenArgs;
 use proto::tls::TlsClientArgs;
 use settings::DeviceChoice;
@@ -17,7 +17,13 @@ use worker::daemon::{WorkerOptions, WorkerTls, run};
 #[derive(Debug, Parser)]
 #[command(
     name = "xfactor-worker",
-    version,
+    version = telemetry::VERSION,
+    after_help = "Examples:
+  join a job (token from $XFACTOR_TOKEN), serving Prometheus metrics:
+    xfactor-worker --coordinator http://coordinator:50051 --metrics-address 0.0.0.0:9091
+  under Slurm (srun in deploy/slurm/xfactor.sbatch), the coordinator address and the
+  worker's name come from the job's variables; --no-slurm turns that off:
+    srun --ntasks-per-node=1 xfactor-worker",
     subcommand_negates_reqs = true,
     args_conflicts_with_subcommands = true
 )]
@@ -47,16 +53,23 @@ enum Device {
 
 #[derive(Debug, clap::Args)]
 struct DaemonArgs {
-    /// The coordinator, http(s)://HOST:PORT
-    #[arg(long, value_name = "URL", required = true)]
+    /// The coordinator, http(s)://HOST:PORT (under Slurm by default the job's first node,
+    /// port 50051 or $XFACTOR_COORDINATOR_PORT)
+    #[arg(long, value_name = "URL")]
     coordinator: Option<String>,
+    /// Ignores the Slurm variables (SLURM_JOB_ID, SLURM_JOB_NODELIST, ...) this worker would
+    /// otherwise take its defaults from; XFACTOR_SLURM=off does the same
+    #[arg(long)]
+    no_slurm: bool,
     #[command(flatten)]
     token: TokenArgs,
-    /// Where the collective service binds (port 0: any free port)
-    #[arg(long, value_name = "HOST:PORT", default_value = "127.0.0.1:0")]
+    /// Where the collective service binds (port 0: any free port; under Slurm the default
+    /// becomes 0.0.0.0:0, so peers on other nodes reach it)
+    #[arg(long, value_name = "HOST:PORT", default_value = LOOPBACK_ANY_PORT)]
     listen: String,
-    /// Address peers dial, when it differs from the bound one (NAT, 0.0.0.0)
-    #[arg(long, value_name = "HOST:PORT")]
+    /// Address peers dial, when it differs from the bound one (NAT, 0.0.0.0); a HOST alone
+    /// takes the bound port (under Slurm by default the node's name)
+    #[arg(long, value_name = "HOST[:PORT]")]
     advertise: Option<String>,
     /// Compute device (by default the job's)
     #[arg(long, value_enum)]
@@ -64,7 +77,7 @@ struct DaemonArgs {
     /// Threads per micro-batch (by default the job's)
     #[arg(long, value_name = "N")]
     threads: Option<usize>,
-    /// Name in logs (by default worker-PID)
+    /// Name in logs (by default worker-PID, or slurm-JOB-TASK under Slurm)
     #[arg(long, value_name = "NAME")]
     name: Option<String>,
     /// Model config (JSON) this worker insists on; registration fails on another
@@ -96,6 +109,9 @@ struct DaemonArgs {
     drill_diverge_from_step: Option<u64>,
 }
 
+/// `--listen`'s default outside Slurm.
+const LOOPBACK_ANY_PORT: &str = "127.0.0.1:0";
+
 /// A whole number of seconds or a fraction, above zero and small enough for a `Duration`.
 fn positive_seconds(text: &str) -> Result<f64, String> {
     let seconds: f64 = text.parse().map_err(|e| format!("{e}"))?;
@@ -121,23 +137,61 @@ impl DaemonArgs {
             })
             .transpose()?;
         let pid = std::process::id();
+        let slurm = if self.no_slurm {
+            None
+        } else {
+            worker::slurm::from_environment()?
+        };
+        if let Some(launch) = &slurm {
+            tracing::info!(
+                job = %launch.job_id,
+                task = launch.task,
+                tasks = ?launch.tasks,
+                node = ?launch.node,
+                gpus = ?launch.gpus,
+                restarts = launch.restarts,
+                "launched by Slurm: defaults taken from its variables (--no-slurm turns this off)"
+            );
+        }
+        let slurm_default =
+            |pick: fn(&worker::slurm::SlurmLaunch) -> Option<String>| slurm.as_ref().and_then(pick);
+        let Some(coordinator) = self
+            .coordinator
+            .or_else(|| slurm_default(|l| l.coordinator.clone()))
+        else {
+            Cli::command()
+                .error(
+                    clap::error::ErrorKind::MissingRequiredArgument,
+                    "--coordinator <URL> is required outside a Slurm job (no SLURM_JOB_NODELIST)",
+                )
+                .exit();
+        };
+        let listen = match (&slurm, self.listen.as_str()) {
+            (Some(_), LOOPBACK_ANY_PORT) => "0.0.0.0:0".to_string(),
+            _ => self.listen,
+        };
+        let advertise = self.advertise.or_else(|| slurm_default(|l| l.node.clone()));
+        let name = self
+            .name
+            .or_else(|| slurm_default(|l| Some(l.worker_name())))
+            .unwrap_or_else(|| format!("worker-{pid}"));
         let tls = self.tls.tls_ca.map(|ca| WorkerTls {
             ca,
             domain: self.tls.tls_domain,
             identity: self.tls_cert.zip(self.tls_key),
         });
         Ok(WorkerOptions {
-            coordinator: self.coordinator.context("--coordinator is required")?,
+            coordinator,
             token,
-            listen: self.listen,
-            advertise: self.advertise,
+            listen,
+            advertise,
             device: self.device.map(|device| match device {
                 Device::Auto => DeviceChoice::Auto,
                 Device::Cpu => DeviceChoice::Cpu,
                 Device::Wgpu => DeviceChoice::Wgpu,
             }),
             threads: self.threads,
-            name: self.name.unwrap_or_else(|| format!("worker-{pid}")),
+            name,
             expected_model_config,
             collective_timeout: Duration::from_secs_f64(self.collective_timeout_s),
             scratch: self

@@ -159,16 +159,18 @@ pub fn train_generation(
         }
         let started = Instant::now();
         progress.doing(Activity::Computing);
-        let (loss, grads) = trainer
+        let (slice_loss, grads) = trainer
             .slice_gradients(&timed, first, count)
             .with_context(|| format!("gradients of step {step}"))?;
         let mut flat = flatten_gradients(trainer.model(), &grads);
-        flat.push(loss);
+        flat.extend([slice_loss.total, slice_loss.l1, slice_loss.lpips]);
         progress.doing(Activity::Allreduce);
         let (returned, mut flat, reduce) = ring
             .all_reduce_on(runtime, flat)
             .with_context(|| format!("all-reduce of step {step}"))?;
         ring = returned;
+        let lpips = flat.pop().unwrap_or(f32::NAN);
+        let l1 = flat.pop().unwrap_or(f32::NAN);
         let loss = flat.pop().unwrap_or(f32::NAN);
         if options
             .drill_diverge_from_step
@@ -212,7 +214,8 @@ pub fn train_generation(
         registry.set(&metrics::ALLREDUCE_SECONDS, &[], reduce.seconds);
         registry.observe(&metrics::STEP_DURATION, &[], elapsed);
         registry.observe(&metrics::ALLREDUCE_DURATION, &[], reduce.seconds);
-        registry.observe(&metrics::DATA_WAIT, &[], timed.take_seconds());
+        let data_wait_s = timed.take_seconds();
+        registry.observe(&metrics::DATA_WAIT, &[], data_wait_s);
         if reduce.seconds > 0.0 {
             let bytes = (flat.len() * std::mem::size_of::<f32>()) as f64;
             registry.set(&metrics::ALLREDUCE_BANDWIDTH, &[], bytes / reduce.seconds);
@@ -230,6 +233,8 @@ pub fn train_generation(
                 learning_rate: outcome.learning_rate,
                 grad_norm: outcome.grad_norm,
                 applied: outcome.applied,
+                l1,
+                lpips,
             }),
             parameter_checksum: checksum.unwrap_or(0),
             checksum_computed: checksum.is_some(),
@@ -237,6 +242,7 @@ pub fn train_generation(
             allreduce_s: reduce.seconds,
             skipped_frames,
             step_s: elapsed,
+            data_wait_s,
             skipped_examples: if skipped_frames > 0 {
                 source.inner().skipped_examples()
             } else {
@@ -253,11 +259,15 @@ pub fn train_generation(
         if let Some(finished) = in_flight.take_if(|commit| commit.is_finished()) {
             finished.wait(runtime)?;
         }
+        if ack.suspend && rank != 0 {
+            return Ok(Ending::Suspended);
+        }
         let commit_due = done.is_multiple_of(assignment.checkpoint_every.max(1))
-            || done == assignment.total_steps;
+            || done == assignment.total_steps
+            || ack.suspend;
         if rank == 0 && commit_due {
             let _span = tracing::info_span!("checkpoint", step = done).entered();
-            let last = done == assignment.total_steps;
+            let last = done == assignment.total_steps || ack.suspend;
             if let Some(previous) = in_flight.take() {
                 if !last {
                     tracing::warn!(
@@ -288,6 +298,9 @@ pub fn train_generation(
             if last {
                 progress.doing(Activity::Committing);
                 commit.wait(runtime)?;
+                if ack.suspend {
+                    return Ok(Ending::Suspended);
+                }
             } else {
                 in_flight = Some(commit);
             }

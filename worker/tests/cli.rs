@@ -13,6 +13,7 @@ fn help_lists_every_flag_with_its_default() {
         &[],
         &[
             ("--coordinator", None),
+            ("--no-slurm", None),
             ("--token", None),
             ("--token-env", Some("XFACTOR_TOKEN")),
             ("--listen", Some("127.0.0.1:0")),

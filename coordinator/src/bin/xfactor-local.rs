@@ -33,7 +33,15 @@ fn preset_name(name: &str) -> Result<String, serde_norway::Error> {
 /// Runs the whole system on one machine: generates a small RE10K-layout dataset, writes its
 /// cluster YAML, and runs a coordinator and worker processes on loopback through both stages.
 #[derive(Debug, Parser)]
-#[command(name = "xfactor-local", version)]
+#[command(
+    name = "xfactor-local",
+    version = telemetry::VERSION,
+    after_help = "Examples:
+  the README's first run (two CPU workers on generated data, then the evaluation):
+    xfactor-local
+  longer, in another folder:
+    xfactor-local --dir my-run --stage1-steps 2000 --stage2-steps 500"
+)]
 struct Cli {
     /// Folder for the data, the YAML, the logs, the checkpoints and the report
     #[arg(long, value_name = "DIR", default_value = DEFAULT_DIR)]
@@ -62,6 +70,15 @@ struct Cli {
     /// Skips the evaluation stage
     #[arg(long)]
     no_evaluate: bool,
+    /// Only writes the dataset and DIR/cluster.yaml (for another launcher, e.g. Slurm), then exits
+    #[arg(long)]
+    prepare_only: bool,
+    /// The coordinator's port (by default a free one)
+    #[arg(long, value_name = "PORT")]
+    port: Option<u16>,
+    /// The host the coordinator listens on (0.0.0.0 for workers on other hosts)
+    #[arg(long, value_name = "HOST", default_value = "127.0.0.1")]
+    listen_host: String,
     #[command(flatten)]
     log: LogArgs,
 }
@@ -70,7 +87,12 @@ fn main() -> anyhow::Result<()> {
     let cli = Cli::parse();
     cli.log.init()?;
     let dir = cli.dir;
-    let mut job = LocalJob::new(&dir, free_port()?);
+    let port = match cli.port {
+        Some(port) => port,
+        None => free_port()?,
+    };
+    let mut job = LocalJob::new(&dir, port);
+    job.listen_host = cli.listen_host;
     job.workers = cli.workers;
     job.stage1_steps = cli.stage1_steps;
     job.stage2_steps = cli.stage2_steps;
@@ -84,6 +106,10 @@ fn main() -> anyhow::Result<()> {
     }
     let runtime = tokio::runtime::Runtime::new()?;
     runtime.block_on(job.prepare())?;
+    if cli.prepare_only {
+        println!("{}", job.config_path().display());
+        return Ok(());
+    }
     let binaries = std::env::current_exe()?
         .parent()
         .context("the binary has no folder")?

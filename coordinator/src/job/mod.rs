@@ -324,6 +324,11 @@ impl JobState {
         Ok(None)
     }
 
+    /// Commits accepted by this coordinator so far.
+    pub fn commit_count(&self) -> usize {
+        self.report.commits.len()
+    }
+
     /// Records a finished step of `phase`; returns whether the generation is still current.
     pub fn report_step(&mut self, worker: u64, phase: Phase, report: &StepReport) -> bool {
         let Some(group) = self
@@ -336,6 +341,7 @@ impl JobState {
         let Some(rank) = group.members.iter().position(|&m| m == worker) else {
             return false;
         };
+        let world_size = group.members.len();
         if let Some(member) = self.members.get_mut(&worker) {
             member.finished_step = Some((phase, report.step));
             member.samples_per_s = report.samples_per_s;
@@ -346,9 +352,16 @@ impl JobState {
         let record = self.steps.record(phase, report.step, report.generation);
         record.step_s = record.step_s.max(report.step_s);
         record.allreduce_s = record.allreduce_s.max(report.allreduce_s);
+        record.data_wait_s = record.data_wait_s.max(report.data_wait_s);
+        record.samples_per_s += report.samples_per_s;
+        record.world_size = world_size;
         if rank == 0 {
             record.loss = loss.total;
             record.learning_rate = loss.learning_rate;
+            record.l1 = loss.l1;
+            record.lpips = (!loss.lpips.is_nan()).then_some(loss.lpips);
+            record.grad_norm = loss.grad_norm;
+            record.applied = loss.applied;
             self.last_loss = loss.total;
         }
         if report.checksum_computed {

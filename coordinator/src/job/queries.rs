@@ -3,7 +3,7 @@
 
 use proto::v1::JobStatus;
 use settings::Phase;
-use telemetry::curves::Curve;
+use telemetry::curves::{Curve, CurvePanel};
 
 use super::{JobState, StepRecord};
 
@@ -80,18 +80,56 @@ impl JobState {
         self.report.checksum_mismatches.len()
     }
 
-    /// The loss curve of `phase` as recorded by this coordinator: one row per step, thinned to
+    /// The curves of `phase` as recorded by this coordinator: one row per step, thinned to
     /// evenly spaced steps past [`super::steps::CURVE_POINTS`] (the last run of a step that
-    /// was re-run after a restart), with loss and learning rate.
+    /// was re-run after a restart): the loss and its terms on a logarithmic axis, the learning
+    /// rate, the gradient norm.
     pub fn curve(&self, phase: Phase) -> Curve {
-        let rows = self
-            .steps
-            .curve(phase)
-            .into_iter()
-            .map(|(step, (loss, learning_rate))| (step, vec![f64::from(loss), learning_rate]));
+        let rows = self.steps.curve(phase).into_iter().map(|(step, row)| {
+            let lpips = row.lpips.map_or(f64::NAN, f64::from);
+            (
+                step,
+                vec![
+                    f64::from(row.loss),
+                    row.learning_rate,
+                    f64::from(row.l1),
+                    lpips,
+                    row.grad_norm,
+                ],
+            )
+        });
+        let panel = |title: &str, y_label: &str, log_y: bool, columns: &[&str]| CurvePanel {
+            title: title.into(),
+            y_label: y_label.into(),
+            log_y,
+            columns: columns.iter().map(|c| (*c).to_string()).collect(),
+        };
         Curve {
-            columns: vec!["loss".into(), "learning_rate".into()],
+            title: format!("{}: {phase}", self.plan.config.job.0),
+            columns: ["loss", "learning_rate", "l1", "lpips", "grad_norm"]
+                .map(String::from)
+                .to_vec(),
             rows: rows.collect(),
+            panels: vec![
+                panel(
+                    "Training loss and its terms",
+                    "loss (log scale)",
+                    true,
+                    &["loss", "l1", "lpips"],
+                ),
+                panel(
+                    "Learning rate (warm-up, then cosine)",
+                    "learning rate",
+                    false,
+                    &["learning_rate"],
+                ),
+                panel(
+                    "Gradient norm before clipping",
+                    "global L2 norm",
+                    true,
+                    &["grad_norm"],
+                ),
+            ],
         }
     }
 }

@@ -101,6 +101,20 @@ pub struct StepRecord {
     pub step_s: f64,
     /// Time of the step's all-reduce: the slowest rank's.
     pub allreduce_s: f64,
+    /// The L1 term of the loss (as rank 0 saw it).
+    pub l1: f32,
+    /// The LPIPS term before its weight, where the stage has one.
+    pub lpips: Option<f32>,
+    /// Global gradient norm before clipping.
+    pub grad_norm: f64,
+    /// False when the update was skipped for an exploding gradient norm.
+    pub applied: bool,
+    /// Time the step waited for data: the slowest rank's.
+    pub data_wait_s: f64,
+    /// Samples per second of the whole group: the ranks' rates summed.
+    pub samples_per_s: f64,
+    /// Ranks of the generation that ran it.
+    pub world_size: usize,
 }
 
 impl StepRecord {
@@ -115,6 +129,13 @@ impl StepRecord {
             checksums: BTreeMap::new(),
             step_s: 0.0,
             allreduce_s: 0.0,
+            l1: 0.0,
+            lpips: None,
+            grad_norm: 0.0,
+            applied: true,
+            data_wait_s: 0.0,
+            samples_per_s: 0.0,
+            world_size: 0,
         }
     }
 }

@@ -20,8 +20,32 @@ pub const RETAINED_RECORDS: usize = 2000;
 /// spacing doubles.
 pub const CURVE_POINTS: usize = 4096;
 
-/// One row of a loss curve: loss and learning rate.
-type CurveRow = (f32, f64);
+/// One row of a stage's curves.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct CurveRow {
+    /// Loss of the global batch.
+    pub loss: f32,
+    /// Its L1 term.
+    pub l1: f32,
+    /// Its LPIPS term before the weight, where the stage has one.
+    pub lpips: Option<f32>,
+    /// Learning rate.
+    pub learning_rate: f64,
+    /// Gradient norm before clipping.
+    pub grad_norm: f64,
+}
+
+impl CurveRow {
+    fn of(record: &StepRecord) -> Self {
+        Self {
+            loss: record.loss,
+            l1: record.l1,
+            lpips: record.lpips,
+            learning_rate: record.learning_rate,
+            grad_norm: record.grad_norm,
+        }
+    }
+}
 
 /// A loss curve thinned to at most [`CURVE_POINTS`] rows: the steps that are multiples of
 /// `stride`.
@@ -102,7 +126,7 @@ impl StepLog {
             self.curves
                 .entry(record.phase)
                 .or_default()
-                .insert(record.step, (record.loss, record.learning_rate));
+                .insert(record.step, CurveRow::of(record));
         }
         self.sealed = self.sealed.max(end);
         // Dropped in batches, so re-indexing costs O(1) per step on average.
@@ -139,7 +163,7 @@ impl StepLog {
             .iter()
             .filter(|r| r.phase == phase)
         {
-            rows.insert(record.step, (record.loss, record.learning_rate));
+            rows.insert(record.step, CurveRow::of(record));
         }
         rows
     }
@@ -169,21 +193,32 @@ mod tests {
         assert_eq!(handed, (0..steps).collect::<Vec<_>>());
         let curve = log.curve(Phase::Stage1);
         assert!(curve.len() <= CURVE_POINTS + 2, "{}", curve.len());
-        assert_eq!(curve[&(steps - 1)].0, (steps - 1) as f32);
+        assert_eq!(curve[&(steps - 1)].loss, (steps - 1) as f32);
         let last = log.retained().last().unwrap();
         assert_eq!((last.step, last.checksums.len()), (steps - 1, 1));
+    }
+
+    /// A row whose loss is the step number.
+    fn row(step: u64) -> CurveRow {
+        CurveRow {
+            loss: step as f32,
+            l1: 0.0,
+            lpips: None,
+            learning_rate: 0.0,
+            grad_norm: 0.0,
+        }
     }
 
     #[test]
     fn a_curve_keeps_every_step_until_full_then_thins_evenly() {
         let mut curve = ThinnedCurve::default();
         for step in 0..CURVE_POINTS as u64 {
-            curve.insert(step, (step as f32, 0.0));
+            curve.insert(step, row(step));
         }
         assert_eq!((curve.rows.len(), curve.stride), (CURVE_POINTS, 1));
         let steps = 10 * CURVE_POINTS as u64;
         for step in CURVE_POINTS as u64..steps {
-            curve.insert(step, (step as f32, 0.0));
+            curve.insert(step, row(step));
         }
         // 40960 steps: spacing 16 leaves 2560 rows, the first and every 16th step.
         assert_eq!(curve.stride, 16);
@@ -192,7 +227,7 @@ mod tests {
             curve
                 .rows
                 .iter()
-                .all(|(&step, row)| step % 16 == 0 && row.0 == step as f32)
+                .all(|(&step, row)| step % 16 == 0 && row.loss == step as f32)
         );
     }
 }

@@ -25,6 +25,7 @@ pub mod lease;
 mod rpc;
 mod sessions;
 pub mod store;
+pub mod tensorboard;
 
 /// The service: shared job state plus a signal for waiters.
 #[derive(Clone)]
@@ -34,6 +35,9 @@ pub struct CoordinatorService {
     /// Cancelled when the job ends or a stop is requested: long-polling RPCs return at once,
     /// so the server's graceful shutdown does not wait on them.
     stopping: CancellationToken,
+    /// Cancelled to suspend the job (SIGUSR1, a batch system's warning before its time limit):
+    /// step acknowledgements ask rank 0 to commit and every worker to exit.
+    suspending: CancellationToken,
     checkpoints: DataRoot,
     heartbeat_interval_s: f64,
     metrics: Arc<Registry>,
@@ -45,6 +49,17 @@ pub struct CoordinatorService {
     ring_secrets: Arc<sessions::RingSecrets>,
     /// This coordinator's hold on the checkpoint URI.
     lease: Arc<lease::Lease>,
+}
+
+/// Longest wait for rank 0's commit once the job is being suspended.
+pub const SUSPEND_LIMIT: Duration = Duration::from_secs(60);
+
+/// What the job's steps are written to as they finish, beside the checkpoints.
+struct Recorders {
+    /// The step history as JSON lines.
+    history: history::History,
+    /// The TensorBoard runs.
+    board: tensorboard::TensorBoard,
 }
 
 /// Why a job could not run.
@@ -140,6 +155,7 @@ impl CoordinatorService {
             state: Arc::new(Mutex::new(JobState::new(plan, timing, durable))),
             changed: Arc::new(Notify::new()),
             stopping: CancellationToken::new(),
+            suspending: CancellationToken::new(),
             checkpoints,
             heartbeat_interval_s,
             metrics: Arc::new(Registry::new()),
@@ -148,6 +164,29 @@ impl CoordinatorService {
             ring_secrets: Arc::default(),
             lease: Arc::new(lease),
         })
+    }
+
+    /// Cancelling it suspends the job: see [`CoordinatorService::run`].
+    pub fn suspender(&self) -> CancellationToken {
+        self.suspending.clone()
+    }
+
+    /// Once suspension was asked for: returns when rank 0's commit of the step after it is
+    /// in, when no group is running, or after [`SUSPEND_LIMIT`] (the last commit then stays
+    /// the resume point).
+    async fn suspended(&self) {
+        self.suspending.cancelled().await;
+        let before = self.state.lock().await.commit_count();
+        tracing::warn!("suspending the job: rank 0 commits its next step, then the workers exit");
+        let started = Instant::now();
+        while started.elapsed() < SUSPEND_LIMIT {
+            tokio::time::sleep(Duration::from_millis(100)).await;
+            let state = self.state.lock().await;
+            if state.commit_count() > before || state.finished() {
+                return;
+            }
+        }
+        tracing::warn!("no commit arrived while suspending; the job resumes from its last commit");
     }
 
     /// The series this service publishes, for the `/metrics` endpoint.
@@ -186,26 +225,55 @@ impl CoordinatorService {
         }
     }
 
-    /// Adds `records` to the history under the checkpoint URI. A failure is logged and the
-    /// records are kept for the next attempt: the report holds every step too.
-    async fn append_history(&self, history: &Mutex<history::History>, records: &[StepRecord]) {
-        if let Err(error) = history.lock().await.append(records).await {
+    /// Adds `records` to the history and the TensorBoard runs under the checkpoint URI. A
+    /// failure is logged and the records are kept for the next attempt: the report holds every
+    /// step too.
+    async fn append_history(&self, recorders: &Mutex<Recorders>, records: &[StepRecord]) {
+        let mut recorders = recorders.lock().await;
+        if let Err(error) = recorders.history.append(records).await {
             tracing::warn!(error = %store::chain(&error), "step history not written; retrying with the next steps");
+        }
+        recorders.board.record_steps(records);
+        if let Err(error) = recorders.board.flush().await {
+            tracing::warn!(error = %store::chain(&error), "TensorBoard events not written; retrying with the next steps");
         }
     }
 
-    /// Writes `curves/stage{N}.csv` and `.png` under the checkpoint URI. A failure is logged,
-    /// not fatal: the curves are a convenience, the report holds every step.
+    /// Puts the committed evaluation's numbers and figures into TensorBoard's `evaluate` run.
+    async fn record_evaluation(&self, recorders: &Mutex<Recorders>) {
+        let Some(location) = self.state.lock().await.durable().evaluation.clone() else {
+            return;
+        };
+        let mut recorders = recorders.lock().await;
+        let recorded = match DataRoot::open(&location) {
+            Ok(root) => recorders.board.record_evaluation(&root, 0).await,
+            Err(error) => Err(error),
+        };
+        let flushed = match recorded {
+            Ok(()) => recorders.board.flush().await,
+            Err(error) => Err(error),
+        };
+        if let Err(error) = flushed {
+            tracing::warn!(%location, error = %store::chain(&error), "the evaluation is not in TensorBoard");
+        }
+    }
+
+    /// Writes `curves/stage{N}.csv`, `.png` and `.svg` under the checkpoint URI. A failure is
+    /// logged, not fatal: the curves are a convenience, the report holds every step.
     async fn write_curves(&self, phase: Phase) {
         let curve = self.state.lock().await.curve(phase);
-        let csv = format!("curves/{phase}.csv");
-        let png = format!("curves/{phase}.png");
         let written: Result<(), Box<dyn std::error::Error>> = async {
             self.checkpoints
-                .write(&csv, curve.to_csv().into_bytes())
+                .write(&format!("curves/{phase}.csv"), curve.to_csv().into_bytes())
                 .await?;
             let image = curve.to_png()?;
-            self.checkpoints.write(&png, image).await?;
+            self.checkpoints
+                .write(&format!("curves/{phase}.png"), image)
+                .await?;
+            let document = curve.to_svg()?;
+            self.checkpoints
+                .write(&format!("curves/{phase}.svg"), document.into_bytes())
+                .await?;
             Ok(())
         }
         .await;
@@ -220,7 +288,8 @@ impl CoordinatorService {
     }
 
     /// Runs the job: serves RPCs, ticks the state machine, and returns the report once both
-    /// stages are done (after giving workers a moment to hear so), or when `shutdown` fires.
+    /// stages are done (after giving workers a moment to hear so), when `shutdown` fires, or
+    /// once a suspension ([`CoordinatorService::suspender`]) has its commit.
     pub async fn run(
         self,
         token: &str,
@@ -261,15 +330,23 @@ impl CoordinatorService {
                 .serve_with_shutdown(address, async move { stop_server.notified().await }),
         );
         tracing::info!(%address, "coordinator listening");
-        let history = Arc::new(Mutex::new(
-            history::History::open(self.checkpoints.clone())
+        let recorders = Arc::new(Mutex::new(Recorders {
+            history: history::History::open(self.checkpoints.clone())
                 .await
                 .map_err(ServeError::OpenStore)?,
-        ));
+            board: tensorboard::TensorBoard::new(self.checkpoints.clone()),
+        }));
+        {
+            let config = tensorboard::resolved_config(self.state.lock().await.plan());
+            let mut recorders = recorders.lock().await;
+            for stage in [Phase::Stage1, Phase::Stage2] {
+                recorders.board.record_config(stage, &config);
+            }
+        }
         let ticker = {
             let service = self.clone();
             let health = health.clone();
-            let history = history.clone();
+            let recorders = recorders.clone();
             async move {
                 let mut phase = service.state.lock().await.phase();
                 let mut renewed = Instant::now();
@@ -291,7 +368,7 @@ impl CoordinatorService {
                         let done = state.finished();
                         (changed, done, state.phase(), state.take_history(done))
                     };
-                    service.append_history(&history, &records).await;
+                    service.append_history(&recorders, &records).await;
                     if changed {
                         service.changed.notify_waiters();
                     }
@@ -302,6 +379,7 @@ impl CoordinatorService {
                     }
                     phase = phase.max(now_phase);
                     if done {
+                        service.record_evaluation(&recorders).await;
                         health.job_ending().await;
                         // Let every worker collect its FINISH before the server goes.
                         tokio::time::sleep(Duration::from_secs_f64(
@@ -319,10 +397,14 @@ impl CoordinatorService {
                 tracing::warn!("shutdown requested: the job stops; rerun to resume from its last commit");
                 None
             }
+            () = self.suspended() => {
+                tracing::warn!("job suspended; rerun (or requeue) to resume from its last commit");
+                None
+            }
         };
         self.stopping.cancel();
         let records = self.state.lock().await.take_history(true);
-        self.append_history(&history, &records).await;
+        self.append_history(&recorders, &records).await;
         self.record_failure().await;
         health.job_ending().await;
         health.close().await;

@@ -108,7 +108,10 @@ impl Coordinator for CoordinatorService {
                 let rank0 = state.is_rank0(report.worker_id);
                 metrics::record_step(&self.metrics, &report, rank0);
             }
-            Ok(Response::new(StepAck { generation_current }))
+            Ok(Response::new(StepAck {
+                generation_current,
+                suspend: self.suspending.is_cancelled(),
+            }))
         }
         .instrument(span)
         .await

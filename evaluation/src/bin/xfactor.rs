@@ -19,7 +19,7 @@ use trainer_core::backend::BackendArgs;
 #[derive(Debug, Parser)]
 #[command(
     name = "xfactor",
-    version,
+    version = telemetry::VERSION,
     after_help = "Example: render a scene along the camera path of a video (videos are decoded through ffmpeg):
   xfactor transfer --checkpoint ckpt/model.safetensors --trajectory walk.mp4 \\
       --scene room.mp4 --frames 30 --out transfer-out

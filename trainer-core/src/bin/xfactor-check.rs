@@ -12,7 +12,12 @@ use trainer_core::parity::{GRADIENT_TOLERANCE, OUTPUT_TOLERANCE, check_fixture};
 /// Checks the model against a fixture of the authors' layout; exits 1 when any output or
 /// gradient is out of tolerance, 2 on an error.
 #[derive(Debug, Parser)]
-#[command(name = "xfactor-check", version)]
+#[command(
+    name = "xfactor-check",
+    version,
+    after_help = "Example: the tiny fixture the project ships, on burn-wgpu:
+  xfactor-check ../shared/fixtures/xfactor-tiny.safetensors --backend wgpu"
+)]
 struct Cli {
     /// The fixture; FIXTURE.json beside it holds its configuration
     #[arg(value_name = "FIXTURE.safetensors")]
