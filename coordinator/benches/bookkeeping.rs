@@ -228,6 +228,8 @@ fn run(workers: usize, options: &Options) -> anyhow::Result<String> {
                         learning_rate: 4e-4,
                         grad_norm: 0.5,
                         applied: true,
+                        l1: 1.0 / (1.0 + step as f32),
+                        lpips: f32::NAN,
                     }),
                     parameter_checksum: 0xC0FFEE,
                     checksum_computed: true,

@@ -84,6 +84,10 @@ fn main() -> anyhow::Result<()> {
 }
 
 async fn run(args: &RunArgs) -> anyhow::Result<()> {
+    // Before indexing, which can take minutes: a batch system's warning then still suspends
+    // (at once, as nothing trains yet) instead of killing the process.
+    let suspender = tokio_util::sync::CancellationToken::new();
+    tokio::spawn(suspend_on_usr1(suspender.clone()));
     let config = ClusterConfig::from_file(&args.config)?;
     let token = config.auth.resolve()?;
     let plan = Plan::build(config).await?;
@@ -95,7 +99,9 @@ async fn run(args: &RunArgs) -> anyhow::Result<()> {
         .metrics_address
         .clone()
         .or_else(|| plan.config.metrics_listen.as_ref().map(|a| a.0.clone()));
-    let service = CoordinatorService::new(plan).await?;
+    let service = CoordinatorService::new(plan)
+        .await?
+        .suspended_by(suspender.clone());
     if let Some(address) = metrics_address {
         telemetry::http::serve(
             &address,
@@ -115,9 +121,10 @@ async fn run(args: &RunArgs) -> anyhow::Result<()> {
             _ = tokio::signal::ctrl_c() => {}
         }
     };
-    let suspender = service.suspender();
-    tokio::spawn(suspend_on_usr1(suspender.clone()));
-    let report = service.run(&token, shutdown).await?;
+    let mut report = service.run(&token, shutdown).await?;
+    if suspender.is_cancelled() {
+        report.outcome = report.outcome.replacen("stopped", "suspended", 1);
+    }
     let json = serde_json::to_string_pretty(&report)?;
     if let Some(path) = &args.report {
         std::fs::write(path, &json)
@@ -150,7 +157,8 @@ async fn run(args: &RunArgs) -> anyhow::Result<()> {
 const SUSPENDED_EXIT_CODE: i32 = 75;
 
 /// Suspends the job on SIGUSR1, which Slurm sends before the time limit
-/// (`--signal=B:USR1@90`, forwarded by `deploy/slurm/xfactor.sbatch`).
+/// (`--signal=B:USR1@90`, forwarded by `deploy/slurm/xfactor.sbatch`); a repeated signal is
+/// harmless.
 async fn suspend_on_usr1(suspender: tokio_util::sync::CancellationToken) {
     let Ok(mut usr1) =
         tokio::signal::unix::signal(tokio::signal::unix::SignalKind::user_defined1())
@@ -160,7 +168,7 @@ async fn suspend_on_usr1(suspender: tokio_util::sync::CancellationToken) {
         );
         return;
     };
-    if usr1.recv().await.is_some() {
+    while usr1.recv().await.is_some() {
         tracing::warn!("SIGUSR1: suspending the job");
         suspender.cancel();
     }

@@ -164,7 +164,7 @@ mod tests {
         assert_eq!((g.width(), g.height()), (2 * 10 + 2, 2 * 10 + 2));
         assert_eq!(g.get_pixel(2, 2).0, [0, 0, 0]);
         assert_eq!(g.get_pixel(12, 2).0, [255, 255, 255]);
-        let reference = vec![
+        let reference = [
             CameraPose::look_at([0.0, 0.0, 0.0], [0.0, 0.0, 1.0]),
             CameraPose::look_at([1.0, 0.0, 1.0], [1.0, 0.0, 2.0]),
         ];

@@ -194,7 +194,7 @@ pub(crate) fn tick(value: f64) -> String {
     let magnitude = value.abs();
     if value == value.round() && magnitude < 1e6 {
         format!("{value:.0}")
-    } else if magnitude < 1e-2 || magnitude >= 1e6 {
+    } else if !(1e-2..1e6).contains(&magnitude) {
         format!("{value:.1e}")
     } else {
         let text = format!("{value:.3}");

@@ -324,6 +324,11 @@ impl JobState {
         Ok(None)
     }
 
+    /// Whether a group of workers is training or evaluating now.
+    pub fn group_running(&self) -> bool {
+        self.group.is_some()
+    }
+
     /// Commits accepted by this coordinator so far.
     pub fn commit_count(&self) -> usize {
         self.report.commits.len()

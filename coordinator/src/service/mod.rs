@@ -166,14 +166,16 @@ impl CoordinatorService {
         })
     }
 
-    /// Cancelling it suspends the job: see [`CoordinatorService::run`].
-    pub fn suspender(&self) -> CancellationToken {
-        self.suspending.clone()
+    /// The service suspends the job once `suspender` is cancelled: see
+    /// [`CoordinatorService::run`].
+    pub fn suspended_by(mut self, suspender: CancellationToken) -> Self {
+        self.suspending = suspender;
+        self
     }
 
     /// Once suspension was asked for: returns when rank 0's commit of the step after it is
-    /// in, when no group is running, or after [`SUSPEND_LIMIT`] (the last commit then stays
-    /// the resume point).
+    /// in, when no group is running (nothing to commit), or after [`SUSPEND_LIMIT`] (the last
+    /// commit then stays the resume point).
     async fn suspended(&self) {
         self.suspending.cancelled().await;
         let before = self.state.lock().await.commit_count();
@@ -182,7 +184,7 @@ impl CoordinatorService {
         while started.elapsed() < SUSPEND_LIMIT {
             tokio::time::sleep(Duration::from_millis(100)).await;
             let state = self.state.lock().await;
-            if state.commit_count() > before || state.finished() {
+            if state.commit_count() > before || state.finished() || !state.group_running() {
                 return;
             }
         }
@@ -289,7 +291,7 @@ impl CoordinatorService {
 
     /// Runs the job: serves RPCs, ticks the state machine, and returns the report once both
     /// stages are done (after giving workers a moment to hear so), when `shutdown` fires, or
-    /// once a suspension ([`CoordinatorService::suspender`]) has its commit.
+    /// once a suspension ([`CoordinatorService::suspended_by`]) has its commit.
     pub async fn run(
         self,
         token: &str,
