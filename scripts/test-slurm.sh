@@ -3,8 +3,6 @@
 #
 #   scripts/test-slurm.sh            # builds the binaries, then runs every case
 #   scripts/test-slurm.sh --no-build # uses the binaries already in $CARGO_TARGET_DIR/release
-#   scripts/test-slurm.sh --fake     # stand-in shell scripts instead of the binaries: checks the
-#                                    # cluster, the signals and the requeue (about 2 minutes)
 #   XFACTOR_SLURM_CASES="finish suspend" scripts/test-slurm.sh   # a subset
 #
 # Needs root (slurmd runs jobs as root here). Installs Debian's slurm-wlm (22.05 on bookworm)
@@ -33,13 +31,11 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 repo="$PWD"
 
-mode=real
 build=1
 for arg in "$@"; do
     case "$arg" in
-        --fake) mode=fake ;;
         --no-build) build=0 ;;
-        *) echo "usage: $0 [--fake] [--no-build]" >&2; exit 2 ;;
+        *) echo "usage: $0 [--no-build]" >&2; exit 2 ;;
     esac
 done
 cases="${XFACTOR_SLURM_CASES:-finish suspend timelimit noworkers}"
@@ -72,19 +68,16 @@ fi
 tmp="$(mktemp -d /tmp/xfactor-slurm.XXXXXX)"
 chmod 755 "$tmp"
 export SLURM_CONF="$tmp/slurm.conf"
-if [ "$mode" = real ]; then
-    source scripts/env.sh
-    if [ "$build" = 1 ]; then
-        bash scripts/setup.sh
-        cargo build --release -p coordinator -p worker --bins
-    fi
-    bin="$CARGO_TARGET_DIR/release"
-    for program in xfactor-coordinator xfactor-worker xfactor-local; do
-        [ -x "$bin/$program" ] || fail "$bin/$program is missing (build it, or drop --no-build)"
-    done
-else
-    bin="$tmp/fake-bin"
+source scripts/env.sh
+if [ "$build" = 1 ]; then
+    bash scripts/setup.sh
+    # The package set of scripts/run.sh, so that both share one build.
+    cargo build --release -p coordinator -p worker -p evaluation --bins
 fi
+bin="$CARGO_TARGET_DIR/release"
+for program in xfactor-coordinator xfactor-worker xfactor-local; do
+    [ -x "$bin/$program" ] || fail "$bin/$program is missing (build it, or drop --no-build)"
+done
 
 # --- cleanup ----------------------------------------------------------------------------------
 daemon_pids=()
@@ -132,112 +125,6 @@ cleanup() {
 }
 trap cleanup EXIT
 trap 'exit 130' INT TERM
-
-# --- stand-ins for the binaries (--fake) ------------------------------------------------------
-# They follow the contract the sbatch script relies on, with files instead of gRPC: the
-# coordinator waits for the expected registrations, "trains" 5 steps a second, commits every 5
-# steps to job.json, suspends on USR1 (exit 75), stops on TERM, resumes from job.json and writes
-# a report shaped like the real one; the workers find the coordinator as the real ones do.
-write_fakes() {
-    mkdir -p "$bin"
-    cat >"$bin/xfactor-coordinator" <<'EOF'
-#!/bin/bash
-# The sbatch script starts the coordinator with USR1 ignored, which bash cannot undo: perl
-# (always on Debian) restores the default before this script runs again.
-if [ -z "${FAKE_REEXEC:-}" ]; then
-    FAKE_REEXEC=1 exec perl -e '$SIG{USR1} = "DEFAULT"; exec @ARGV or die' "$0" "$@"
-fi
-set -u
-config="" report=""
-while [ $# -gt 0 ]; do
-    case "$1" in --config) config="$2"; shift ;; --report) report="$2"; shift ;; esac
-    shift
-done
-value() { sed -n "s/^ *$1: *//p" "$config" | head -n 1; }
-port="$(value listen)"; port="${port##*:}"
-steps="$(value steps)"; expected="$(value expected)"; dir="$(value uri)"
-mkdir -p "$dir/registered"
-rm -f "$dir/leave" "$dir/finished" "$dir"/registered/*
-step=0 resume=""
-if [ -f "$dir/job.json" ]; then
-    step="$(jq '.last_commit.step // 0' "$dir/job.json")"
-    resume="$(jq -r '.last_commit.location // ""' "$dir/job.json")"
-fi
-first_step=$((step + 1))
-say() { echo "fake-coordinator: $*" >&2; }
-commit() {
-    printf '{"job":"fake","stage":1,"last_commit":{"stage":1,"step":%d,"location":"%s/step-%06d"}}\n' \
-        "$1" "$dir" "$1" >"$dir/job.json.tmp" && mv "$dir/job.json.tmp" "$dir/job.json"
-}
-write_report() {
-    local outcome="$1" steps_json="" s
-    for ((s = first_step; s <= step; s++)); do steps_json="$steps_json${steps_json:+,}{\"stage\":1,\"step\":$s,\"generation\":1}"; done
-    printf '{"job":"fake","outcome":"%s","generations":[{"generation":1,"stage":1,"world_size":%d,"resume_from":"%s"}],"steps":[%s]}\n' \
-        "$outcome" "$registered" "$resume" "$steps_json" >"$report"
-}
-leave_and_wait() {
-    touch "$dir/leave"
-    for _ in $(seq 50); do [ -z "$(ls "$dir/registered")" ] && return; sleep 0.2; done
-}
-signal=""
-trap 'signal=USR1' USR1
-trap 'signal=TERM' TERM
-say "listening on port $port, resuming from step $step"
-touch "$dir/coordinator.up"
-registered=0
-for _ in $(seq 300); do
-    registered=$(ls "$dir/registered" | wc -l)
-    [ "$registered" -ge "$expected" ] && break
-    [ -n "$signal" ] && break
-    sleep 0.2
-done
-[ "$registered" -ge "$expected" ] || { say "workers never registered"; rm -f "$dir/coordinator.up"; exit 1; }
-for f in "$dir"/registered/*; do say "worker registered name=$(basename "$f") url=$(cat "$f")"; done
-say "group formed world_size=$registered resume=$step"
-while [ "$step" -lt "$steps" ]; do
-    if [ "$signal" = USR1 ]; then
-        say "USR1: suspending at committed step $((step / 5 * 5))"
-        leave_and_wait; commit $((step / 5 * 5)); step=$((step / 5 * 5)); write_report suspended; exit 75
-    elif [ "$signal" = TERM ]; then
-        say "TERM: stopping"; leave_and_wait; write_report "stopped"; exit 0
-    fi
-    sleep 0.2
-    step=$((step + 1))
-    [ $((step % 5)) -eq 0 ] && commit "$step"
-done
-commit "$step"; touch "$dir/finished"; write_report finished; say "job finished"
-EOF
-    cat >"$bin/xfactor-worker" <<'EOF'
-#!/bin/bash
-set -u
-coordinator="" token_env="" slurm=on
-[ "${XFACTOR_SLURM:-}" = off ] && slurm=off
-while [ $# -gt 0 ]; do
-    case "$1" in
-        --coordinator) coordinator="$2"; shift ;;
-        --token-env) token_env="$2"; shift ;;
-        --listen|--advertise|--threads|--device|--name|--scratch) shift ;;
-        --no-slurm) slurm=off ;;
-        *) echo "fake-worker: unknown argument $1" >&2; exit 2 ;;
-    esac
-    shift
-done
-[ -n "$token_env" ] && [ -n "${!token_env:-}" ] || { echo "fake-worker: no token" >&2; exit 2; }
-if [ -z "$coordinator" ] && [ "$slurm" = on ] && [ -n "${SLURM_JOB_NODELIST:-}" ]; then
-    coordinator="http://$(scontrol show hostnames "$SLURM_JOB_NODELIST" | head -n 1):${XFACTOR_COORDINATOR_PORT:-50051}"
-fi
-[ -n "$coordinator" ] || { echo "fake-worker: --coordinator is required" >&2; exit 2; }
-name="slurm-${SLURM_JOB_ID}-${SLURM_PROCID}"
-dir="$XFACTOR_FAKE_DIR"
-until [ -f "$dir/coordinator.up" ]; do sleep 0.2; done
-echo "$coordinator" >"$dir/registered/$name"
-trap 'echo "fake-worker $name: TERM, leaving" >&2; rm -f "$dir/registered/$name"; exit 0' TERM
-until [ -f "$dir/leave" ] || [ -f "$dir/finished" ]; do sleep 0.2; done
-rm -f "$dir/registered/$name"
-echo "fake-worker $name: leaving" >&2
-EOF
-    chmod +x "$bin/xfactor-coordinator" "$bin/xfactor-worker"
-}
 
 # --- the cluster ------------------------------------------------------------------------------
 node="$(hostname -s)"
@@ -305,7 +192,6 @@ for ((i = 0; ; i++)); do
     sleep 0.5
 done
 echo "slurm_version=$(sinfo -V | awk '{print $2}') node=$node cpus=$(nproc) cluster_up_s=$(elapsed "$started" "$(date +%s.%N)")"
-[ "$mode" = fake ] && write_fakes
 
 # --- helpers ----------------------------------------------------------------------------------
 job_field() { scontrol show job -o "$1" 2>/dev/null | tr ' ' '\n' | sed -n "s/^$2=//p" | head -n 1; }
@@ -339,18 +225,13 @@ epoch_of() { grep -E "$2" "$1" | head -n 1 | sed -n 's/.*epoch=\([0-9.]*\).*/\1/
 prepare() {
     local dir="$tmp/$1" steps="$2"
     mkdir -p "$dir"
-    if [ "$mode" = real ]; then
-        "$bin/xfactor-local" --prepare-only --dir "$dir" --port "$port" --listen-host 0.0.0.0 \
-            --stage1-steps "$steps" --stage2-steps 10 --no-evaluate >"$dir/prepare.log" 2>&1 \
-            || { cat "$dir/prepare.log" >&2; fail "xfactor-local --prepare-only failed"; }
-        # Reachable on the node's name (what the workers dial), and the token from the
-        # environment, which the sbatch script generates when none is given.
-        sed -i -e "s/^listen: .*/listen: 0.0.0.0:$port/" \
-            -e 's/^  token: .*/  token_env: XFACTOR_TOKEN/' "$dir/cluster.yaml"
-    else
-        printf 'job: fake\nlisten: 0.0.0.0:%s\nauth:\n  token_env: XFACTOR_TOKEN\nstage1:\n  steps: %s\ncheckpoint:\n  uri: %s\nworkers:\n  expected: 2\n' \
-            "$port" "$steps" "$dir/checkpoints" >"$dir/cluster.yaml"
-    fi
+    "$bin/xfactor-local" --prepare-only --dir "$dir" --port "$port" --listen-host 0.0.0.0 \
+        --stage1-steps "$steps" --stage2-steps 10 --no-evaluate >"$dir/prepare.log" 2>&1 \
+        || { cat "$dir/prepare.log" >&2; fail "xfactor-local --prepare-only failed"; }
+    # Reachable on the node's name (what the workers dial), and the token from the
+    # environment, which the sbatch script generates when none is given.
+    sed -i -e "s/^listen: .*/listen: 0.0.0.0:$port/" \
+        -e 's/^  token: .*/  token_env: XFACTOR_TOKEN/' "$dir/cluster.yaml"
     grep -q "^listen: 0.0.0.0:$port" "$dir/cluster.yaml" || fail "$dir/cluster.yaml has no listen: line"
     echo "$dir/cluster.yaml"
 }
@@ -431,7 +312,7 @@ resumed_first_step() {
 # --- case: suspend ----------------------------------------------------------------------------
 case_suspend() {
     local yaml job state out ckpt suspended location t_signal first restarts
-    if [ "$mode" = real ]; then yaml="$(prepare suspend 400)"; else yaml="$(prepare suspend 60)"; fi
+    yaml="$(prepare suspend 400)"
     ckpt="$(checkpoint_dir "$yaml")"
     job="$(submit suspend --time=10)"
     out="$tmp/suspend/slurm-$job.out"
@@ -529,4 +410,4 @@ for name in $cases; do
     say "case $name"
     "case_$name"
 done
-say "all cases passed ($mode)"
+say "all cases passed"
