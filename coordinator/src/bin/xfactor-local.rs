@@ -185,7 +185,36 @@ fn main() -> anyhow::Result<()> {
         started.elapsed().as_secs_f64(),
         job.report_path().display()
     );
+    print_where_to_look(&job, report["evaluation"].as_str().map(Path::new));
     Ok(())
+}
+
+/// Where the report, the pictures and the TensorBoard runs are, and the command that opens
+/// TensorBoard (from the environment `scripts/setup.sh` installs it into).
+fn print_where_to_look(job: &LocalJob, evaluation: Option<&Path>) {
+    let checkpoints = job.checkpoint_dir();
+    if let Some(evaluation) = evaluation {
+        println!("report:      {}", evaluation.join("report.md").display());
+        println!(
+            "pictures:    {}/*.png (reconstructions, transfers along the source camera path, camera paths)",
+            evaluation.display()
+        );
+    }
+    println!(
+        "curves:      {}/curves/stage1.png, stage2.png (and .svg, .csv)",
+        checkpoints.display()
+    );
+    let cache = std::env::var_os("XDG_CACHE_HOME").map_or_else(
+        || Path::new(&std::env::var_os("HOME").unwrap_or_default()).join(".cache"),
+        PathBuf::from,
+    );
+    println!(
+        "tensorboard: {} --logdir {}/tensorboard   (then open http://localhost:6006)",
+        cache
+            .join("xfactor-dist/tensorboard-env/bin/tensorboard")
+            .display(),
+        checkpoints.display()
+    );
 }
 
 /// Redraws the progress line from the coordinator's status twice a second until `done`.
@@ -264,11 +293,12 @@ fn evaluation_figures(location: &Path) -> anyhow::Result<String> {
         if numbers.is_null() {
             continue;
         }
+        let reconstruction =
+            |key: &str| numbers["reconstruction"][key].as_f64().unwrap_or(f64::NAN);
         figures.push(format!(
-            "{model}_psnr={:.2} {model}_tps_auc30={:.3} {model}_probe_auc30={:.3}",
-            numbers["reconstruction"]["psnr"]
-                .as_f64()
-                .unwrap_or(f64::NAN),
+            "{model}_psnr={:.2} {model}_ssim={:.3} {model}_tps_auc30={:.3} {model}_probe_auc30={:.3}",
+            reconstruction("psnr"),
+            reconstruction("ssim"),
             auc30(&numbers["tps"]["model"]),
             auc30(&numbers["probe"]["metrics"])
         ));
