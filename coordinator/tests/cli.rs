@@ -114,7 +114,7 @@ fn help_lists_every_flag_with_its_default() {
             ("--tls-domain", None),
         ],
     );
-    let job = LocalJob::new(std::path::Path::new("unused"), 0);
+    let job = LocalJob::demo(std::path::Path::new("unused"), 0);
     let (workers, stage1, stage2) = (
         job.workers.to_string(),
         job.stage1_steps.to_string(),

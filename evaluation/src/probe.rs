@@ -40,6 +40,21 @@ fn split_output(o: &[f32]) -> Output {
     )
 }
 
+/// The probe's outputs as read: with `from_identity` each output's matrix part is taken as
+/// `I + M` (see `ProbeSpec::rotation_from_identity`); the gradient with respect to the raw
+/// outputs is the same either way.
+fn read_outputs(mut outputs: Vec<f32>, from_identity: bool) -> Vec<f32> {
+    if from_identity {
+        for output in outputs.chunks_exact_mut(OUTPUTS) {
+            // The matrix is row-major in outputs 3..12: its diagonal is at 3, 7 and 11.
+            for diagonal in [3, 7, 11] {
+                output[diagonal] += 1.0;
+            }
+        }
+    }
+    outputs
+}
+
 /// The L1 loss of a batch of outputs against `(R, t)` targets, and its gradient with respect to
 /// the outputs (through the SVD projection): `mean |R - R_gt| + mean |t - t_gt|` over every
 /// pair. The pairs come in consecutive groups of `groups[k]` (one sequence's pairs each); with
@@ -208,6 +223,7 @@ pub fn run_probe(
             .clone()
             .try_into_vec_as::<f32>()
             .map_err(|e| EvalError::Tensor(format!("{e:?}")))?;
+        let host = read_outputs(host, spec.rotation_from_identity);
         // The projection runs on the host; the surrogate `sum(outputs * dL/doutputs)` carries
         // its exact gradient back into the MLP.
         let scale_aligned = spec.loss == ProbeLoss::Trajectories;
@@ -233,6 +249,7 @@ pub fn run_probe(
             .forward(x)
             .try_into_vec_as::<f32>()
             .map_err(|e| EvalError::Tensor(format!("{e:?}")))?;
+        let out = read_outputs(out, spec.rotation_from_identity);
         let predicted: Vec<CameraPose> = out
             .chunks_exact(OUTPUTS)
             .enumerate()
@@ -313,6 +330,17 @@ mod tests {
         );
         let (trajectory, _) = loss_and_gradient(&outputs, &targets, &[4], true);
         assert!(trajectory < 1e-6, "{trajectory}");
+    }
+
+    #[test]
+    fn zero_outputs_read_from_the_identity_are_no_rotation() {
+        let zero = vec![0.0f32; 2 * OUTPUTS];
+        assert_eq!(read_outputs(zero.clone(), false), zero);
+        for output in read_outputs(zero, true).chunks_exact(OUTPUTS) {
+            let (t, m) = split_output(output);
+            assert_eq!(t, Vector3::zeros());
+            assert_eq!(so3::project(&m), Matrix3::identity());
+        }
     }
 
     #[test]

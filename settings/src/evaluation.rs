@@ -137,6 +137,11 @@ pub struct ProbeSpec {
     pub test_scenes: u64,
     /// What one training sample is, and so how translation scale is treated.
     pub loss: ProbeLoss,
+    /// Not the release's: the probe's 3x3 output is read as an offset from the identity
+    /// (`I + M` is projected onto SO(3)), so an untrained probe starts at "no rotation"
+    /// instead of at a random rotation. On small generated scenes, whose cameras barely rotate,
+    /// the release's start sometimes settles 180 degrees away; the local demo job sets it.
+    pub rotation_from_identity: bool,
 }
 
 /// The release's two probe losses (`nn/losses.py`): both are `mean |R - R_gt| +
@@ -165,6 +170,7 @@ impl Default for ProbeSpec {
             learning_rate: 1e-3,
             test_scenes: 2,
             loss: ProbeLoss::Pairs,
+            rotation_from_identity: false,
         }
     }
 }

@@ -6,7 +6,6 @@
 use std::sync::Once;
 
 use plotters::coord::Shift;
-use plotters::coord::ranged1d::{AsRangedCoord, Ranged, ValueFormatter};
 use plotters::prelude::*;
 
 /// The shipped font (see `telemetry/fonts/LICENSE-DejaVu.txt`).
@@ -221,19 +220,23 @@ fn bounds(values: impl Iterator<Item = f64>) -> Option<(f64, f64)> {
 }
 
 impl Panel {
-    /// The points of every series that the axes can show.
+    /// The series that have points the axes can show, with each point's height as drawn:
+    /// `log10(y)` on a logarithmic axis (drawn linearly, labelled with `10^y`, so every
+    /// range gets tick labels, also one narrower than a decade).
     fn drawable(&self) -> Vec<(&str, Vec<(f64, f64)>)> {
         self.series
             .iter()
             .map(|series| {
-                let points = series
+                let points: Vec<(f64, f64)> = series
                     .points
                     .iter()
                     .copied()
                     .filter(|(x, y)| x.is_finite() && y.is_finite() && (!self.log_y || *y > 0.0))
+                    .map(|(x, y)| (x, if self.log_y { y.log10() } else { y }))
                     .collect();
                 (series.name.as_str(), points)
             })
+            .filter(|(_, points)| !points.is_empty())
             .collect()
     }
 
@@ -244,37 +247,28 @@ impl Panel {
         let lines = self.drawable();
         let all = || lines.iter().flat_map(|(_, points)| points.iter());
         let (x_low, x_high) = bounds(all().map(|p| p.0)).unwrap_or((0.0, 1.0));
-        let (y_low, y_high) = bounds(all().map(|p| p.1)).unwrap_or((0.1, 1.0));
-        if self.log_y {
-            let range = (y_low / 1.25..y_high * 1.25).log_scale();
-            self.draw_lines(area, &lines, x_low..x_high, range)
-        } else if self.equal_aspect {
+        let (y_low, y_high) = bounds(all().map(|p| p.1)).unwrap_or((0.0, 1.0));
+        let (x, y) = if self.equal_aspect {
             let half = (x_high - x_low).max(y_high - y_low) * 0.55;
             let (x_mid, y_mid) = ((x_low + x_high) / 2.0, (y_low + y_high) / 2.0);
-            self.draw_lines(
-                area,
-                &lines,
-                x_mid - half..x_mid + half,
-                y_mid - half..y_mid + half,
-            )
+            (x_mid - half..x_mid + half, y_mid - half..y_mid + half)
         } else {
             let pad = (y_high - y_low) * 0.05;
-            self.draw_lines(area, &lines, x_low..x_high, y_low - pad..y_high + pad)
-        }
+            (x_low..x_high, y_low - pad..y_high + pad)
+        };
+        self.draw_lines(area, &lines, x, y)
     }
 
-    fn draw_lines<DB, Y>(
+    fn draw_lines<DB>(
         &self,
         area: &DrawingArea<DB, Shift>,
         lines: &[(&str, Vec<(f64, f64)>)],
         x: std::ops::Range<f64>,
-        y: Y,
+        y: std::ops::Range<f64>,
     ) -> DrawResult
     where
         DB: DrawingBackend,
         DB::ErrorType: 'static,
-        Y: AsRangedCoord<Value = f64>,
-        Y::CoordDescType: Ranged<ValueType = f64> + ValueFormatter<f64>,
     {
         let mut chart = ChartBuilder::on(area)
             .caption(&self.title, (FAMILY, 18).into_font())
@@ -283,12 +277,25 @@ impl Panel {
             .y_label_area_size(80)
             .build_cartesian_2d(x, y)
             .map_err(boxed)?;
+        let log_y = self.log_y;
+        let y_label = |y: &f64| {
+            if log_y {
+                tick(significant(10f64.powf(*y)))
+            } else {
+                tick(*y)
+            }
+        };
+        let y_desc = if log_y {
+            format!("{} (log scale)", self.y_label)
+        } else {
+            self.y_label.clone()
+        };
         chart
             .configure_mesh()
             .x_desc(&self.x_label)
-            .y_desc(&self.y_label)
+            .y_desc(y_desc)
             .x_label_formatter(&|x| tick(*x))
-            .y_label_formatter(&|y| tick(*y))
+            .y_label_formatter(&y_label)
             .label_style((FAMILY, 13).into_font())
             .axis_desc_style((FAMILY, 15).into_font())
             .light_line_style(RGBColor(235, 235, 235))
@@ -327,6 +334,15 @@ impl Panel {
             .map_err(boxed)?;
         Ok(())
     }
+}
+
+/// `value` rounded to two significant digits (tick labels of a logarithmic axis).
+fn significant(value: f64) -> f64 {
+    if value == 0.0 || !value.is_finite() {
+        return value;
+    }
+    let scale = 10f64.powf(value.abs().log10().floor() - 1.0);
+    (value / scale).round() * scale
 }
 
 #[cfg(test)]
@@ -407,6 +423,37 @@ mod tests {
         figure.panels[0].series[0].points.push((60.0, 0.0));
         figure.panels[0].series[1].points.clear();
         assert!(figure.to_png().is_ok());
-        assert_eq!(figure.panels[0].drawable()[0].1.len(), 49);
+        let drawable = figure.panels[0].drawable();
+        assert_eq!(
+            drawable.len(),
+            1,
+            "a series with no point is left out, legend too"
+        );
+        assert_eq!(drawable[0].1.len(), 49);
+        assert_eq!(
+            drawable[0].1[9],
+            (10.0, -1.0),
+            "heights are log10 on a log axis"
+        );
+        figure.panels[0].series.clear();
+        assert!(figure.to_png().is_ok());
+    }
+
+    #[test]
+    fn a_log_axis_narrower_than_a_decade_still_has_tick_labels() {
+        let mut figure = figure(true);
+        figure.panels[0].series = vec![Series {
+            name: "loss".into(),
+            points: (0..100)
+                .map(|s| (s as f64, 0.5 - 0.003 * s as f64))
+                .collect(),
+        }];
+        let svg = figure.to_svg().expect("drawn");
+        assert!(
+            svg.contains(">\n0.3\n<") || svg.contains(">\n0.25\n<"),
+            "{svg}"
+        );
+        assert!(svg.contains("loss (log scale)"));
+        assert_eq!(significant(0.2512), 0.25);
     }
 }

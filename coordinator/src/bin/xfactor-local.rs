@@ -22,7 +22,7 @@ const DEFAULT_DIR: &str = "xfactor-local-run";
 
 /// The local job's settings before any flag, whose values `--help` shows as defaults.
 fn defaults() -> LocalJob {
-    LocalJob::new(Path::new(DEFAULT_DIR), 0)
+    LocalJob::demo(Path::new(DEFAULT_DIR), 0)
 }
 
 /// Checks a `--preset` against the cluster YAML's `model.preset` names.
@@ -91,7 +91,7 @@ fn main() -> anyhow::Result<()> {
         Some(port) => port,
         None => free_port()?,
     };
-    let mut job = LocalJob::new(&dir, port);
+    let mut job = LocalJob::demo(&dir, port);
     job.listen_host = cli.listen_host;
     job.workers = cli.workers;
     job.stage1_steps = cli.stage1_steps;
@@ -151,17 +151,16 @@ fn main() -> anyhow::Result<()> {
     let stage = |number: u64| -> Vec<&serde_json::Value> {
         steps.iter().filter(|r| r["stage"] == number).collect()
     };
-    let loss = |record: Option<&&serde_json::Value>| {
-        record.map_or(f64::NAN, |r| r["loss"].as_f64().unwrap_or(f64::NAN))
-    };
     let mut figures = Vec::new();
     for number in [1, 2] {
         let records = stage(number);
         let timed = StepTimes::of(&records);
+        let (first, last) = loss_ends(
+            &job.checkpoint_dir()
+                .join(format!("curves/stage{number}.csv")),
+        );
         figures.push(format!(
-            "stage{number}_loss={:.4}->{:.4} stage{number}_step_s={:.4} stage{number}_allreduce_s={:.4} stage{number}_comm_share={:.3}",
-            loss(records.first()),
-            loss(records.last()),
+            "stage{number}_loss={first:.4}->{last:.4} stage{number}_step_s={:.4} stage{number}_allreduce_s={:.4} stage{number}_comm_share={:.3}",
             timed.step_s,
             timed.allreduce_s,
             timed.allreduce_s / timed.step_s
@@ -178,7 +177,7 @@ fn main() -> anyhow::Result<()> {
         job.image_size,
         job.global_batch,
         job.micro_batch,
-        steps.len(),
+        job.stage1_steps + job.stage2_steps,
         figures.join(" "),
         report["restarts"],
         report["checksum_mismatches"].as_array().map_or(0, Vec::len),
@@ -245,6 +244,26 @@ async fn draw_progress(job: LocalJob, started: Instant, done: Arc<AtomicBool>) {
         }
     }
     eprintln!();
+}
+
+/// The mean loss of a stage's first and of its last tenth of steps (at most 50 each), from
+/// its curve CSV: the report keeps only the newest steps, and single steps are noisy.
+fn loss_ends(csv: &Path) -> (f64, f64) {
+    let losses: Vec<f64> = std::fs::read_to_string(csv)
+        .unwrap_or_default()
+        .lines()
+        .skip(1)
+        .filter_map(|line| line.split(',').nth(1)?.parse().ok())
+        .collect();
+    let count = (losses.len() / 10).clamp(1, 50);
+    let mean = |values: &[f64]| values.iter().sum::<f64>() / values.len().max(1) as f64;
+    if losses.is_empty() {
+        return (f64::NAN, f64::NAN);
+    }
+    (
+        mean(&losses[..count]),
+        mean(&losses[losses.len() - count..]),
+    )
 }
 
 /// Mean step and all-reduce times of a stage, leaving out its first step (model set-up and

@@ -425,6 +425,15 @@ impl ClusterConfig {
             };
             format!("model.{key}: {e}{why}{line}")
         })?;
+        if self.stage2.objective.views < 3 {
+            // Two frames are a stage-1 pair: the data sources serve them as pairs, which the
+            // stage-2 objective cannot train on (the generation would fail again and again).
+            return Err(format!(
+                "stage2.objective.views: {} is fewer than 3 (stage 2 trains on a reference, at least one more context view and the target; two frames are stage 1's pairs){}",
+                self.stage2.objective.views,
+                at(&["stage2", "objective", "views"])
+            ));
+        }
         if self.stage2.objective.variant.stage1_only() {
             return Err(format!(
                 "stage2.objective.variant: {:?} adds a context view to stage 1's pairs; stage 2 has `views` context views already{}",

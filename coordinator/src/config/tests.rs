@@ -283,6 +283,18 @@ fn extra_view_variants_draw_three_frames_in_stage_1_and_are_refused_in_stage_2()
 }
 
 #[test]
+fn stage_2_with_fewer_than_three_views_is_refused_naming_the_key() {
+    let refused = error_of(&GOOD.replace(
+        "  lpips_weight: 0\ncheckpoint",
+        "  lpips_weight: 0\n  objective: {views: 2}\ncheckpoint",
+    ));
+    assert!(
+        refused.contains("stage2.objective.views: 2 is fewer than 3"),
+        "{refused}"
+    );
+}
+
+#[test]
 fn se3_plucker_in_either_stage_builds_a_ray_conditioned_model() {
     use settings::model::{CAMERA_VECTOR_VALUES, PoseConditioning};
     let plain = ClusterConfig::from_yaml(GOOD, "cluster.yaml").unwrap();

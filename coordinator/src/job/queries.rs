@@ -113,9 +113,9 @@ impl JobState {
             panels: vec![
                 panel(
                     "Training loss and its terms",
-                    "loss (log scale)",
+                    "loss",
                     true,
-                    &["loss", "l1", "lpips"],
+                    &["l1", "lpips", "loss"],
                 ),
                 panel(
                     "Learning rate (warm-up, then cosine)",

@@ -493,6 +493,7 @@ impl From<&EvaluationSpec> for v1::EvaluationSettings {
                     ProbeLoss::Pairs => v1::ProbeLoss::Pairs,
                     ProbeLoss::Trajectories => v1::ProbeLoss::Trajectories,
                 } as i32,
+                rotation_from_identity: e.probe.rotation_from_identity,
             }),
             oracle: Some(oracle),
             lpips_weights: e
@@ -541,6 +542,7 @@ impl TryFrom<&v1::EvaluationSettings> for EvaluationSpec {
                 width: size(probe.width),
                 learning_rate: probe.learning_rate,
                 test_scenes: probe.test_scenes,
+                rotation_from_identity: probe.rotation_from_identity,
                 loss: match v1::ProbeLoss::try_from(probe.loss) {
                     Ok(v1::ProbeLoss::Pairs) => ProbeLoss::Pairs,
                     Ok(v1::ProbeLoss::Trajectories) => ProbeLoss::Trajectories,

@@ -99,6 +99,7 @@ fn every_setting_survives_the_wire() {
         lpips_weights: Some("lpips.safetensors".into()),
         probe: ProbeSpec {
             loss: ProbeLoss::Trajectories,
+            rotation_from_identity: true,
             ..ProbeSpec::default()
         },
         sequences: vec![SequenceProtocol {
