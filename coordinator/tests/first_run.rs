@@ -12,6 +12,10 @@ use common::Running;
 use coordinator::local::{LocalJob, free_port};
 use serde_json::Value;
 
+/// A reported number: its name, how to read it from one model's report, and the margin by
+/// which the trained model must lead.
+type Measure = (&'static str, fn(&Value) -> f64, f64);
+
 /// AUC@30 of a metrics object of the evaluation report.
 fn auc30(metrics: &Value) -> f64 {
     metrics["thresholds"]
@@ -31,7 +35,7 @@ fn the_first_run_puts_the_trained_model_ahead_on_every_metric() {
     let numbers: Value =
         serde_json::from_slice(&std::fs::read(location.join("report.json")).unwrap()).unwrap();
     let (trained, untrained) = (&numbers["trained"], &numbers["untrained"]);
-    let measures: [(&str, fn(&Value) -> f64, f64); 4] = [
+    let measures: [Measure; 4] = [
         (
             "reconstruction PSNR (dB)",
             |m| m["reconstruction"]["psnr"].as_f64().unwrap(),

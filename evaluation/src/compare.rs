@@ -8,6 +8,7 @@ use std::path::{Path, PathBuf};
 
 use settings::model::PoseConditioning;
 use telemetry::bars::BarChart;
+use telemetry::plot::Chart;
 
 use crate::error::{EvalError, io_error};
 use crate::evaluate::EvaluationReport;

@@ -7,7 +7,7 @@ use data::Image;
 use data::scenes::CameraPose;
 use image::codecs::gif::{GifEncoder, Repeat};
 use image::{Delay, Frame, Rgb, RgbImage, RgbaImage};
-use telemetry::plot::{Figure, Panel, Series};
+use telemetry::plot::{Chart, Figure, Panel, Series};
 
 /// Gap between tiles of grids and strips, in pixels.
 const GAP: u32 = 2;

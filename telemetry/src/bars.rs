@@ -6,7 +6,7 @@ use plotters::coord::Shift;
 use plotters::prelude::*;
 use plotters::style::text_anchor::{HPos, Pos, VPos};
 
-use crate::plot::{DrawResult, FAMILY, PALETTE, PlotError, boxed, render_png, render_svg};
+use crate::plot::{Chart, DrawResult, FAMILY, PALETTE, boxed};
 
 /// Values of several series over the same measures.
 #[derive(Debug, Clone, PartialEq)]
@@ -26,11 +26,6 @@ pub struct BarChart {
 const GROUP_FILL: f64 = 0.8;
 
 impl BarChart {
-    fn size(&self) -> (u32, u32) {
-        let bars = self.measures.len().max(1) * self.series.len().max(1);
-        ((240 + 26 * bars as u32).max(640), 480)
-    }
-
     /// Left and right edge of series `index`'s bar in group `measure` (groups are centred on
     /// whole numbers).
     fn bar_span(&self, measure: usize, index: usize) -> (f64, f64) {
@@ -38,15 +33,16 @@ impl BarChart {
         let left = measure as f64 - GROUP_FILL / 2.0 + index as f64 * width;
         (left, left + width)
     }
+}
 
-    /// The chart as PNG bytes.
-    pub fn to_png(&self) -> Result<Vec<u8>, PlotError> {
-        render_png(&self.title, self.size(), |root| self.draw(root))
+impl Chart for BarChart {
+    fn title(&self) -> &str {
+        &self.title
     }
 
-    /// The chart as an SVG document.
-    pub fn to_svg(&self) -> Result<String, PlotError> {
-        render_svg(&self.title, self.size(), |root| self.draw(root))
+    fn size(&self) -> (u32, u32) {
+        let bars = self.measures.len().max(1) * self.series.len().max(1);
+        ((240 + 26 * bars as u32).max(640), 480)
     }
 
     fn draw<DB: DrawingBackend>(&self, root: &DrawingArea<DB, Shift>) -> DrawResult

@@ -5,7 +5,7 @@
 
 use std::fmt::Write;
 
-use crate::plot::{Figure, Panel, PlotError, Series};
+use crate::plot::{Chart, Figure, Panel, PlotError, Series};
 
 /// A panel of a [`Curve`]'s figure: which columns it draws and how.
 #[derive(Debug, Clone, PartialEq)]

@@ -67,7 +67,7 @@ pub(crate) fn boxed<E: std::error::Error + Send + Sync + 'static>(
 }
 
 /// Draws with `draw` on a `width` x `height` bitmap and encodes it as PNG.
-pub(crate) fn render_png(
+fn render_png(
     title: &str,
     (width, height): (u32, u32),
     draw: impl FnOnce(&DrawingArea<BitMapBackend<'_>, Shift>) -> DrawResult,
@@ -96,7 +96,7 @@ pub(crate) fn render_png(
 }
 
 /// Draws with `draw` as an SVG document of `width` x `height`.
-pub(crate) fn render_svg(
+fn render_svg(
     title: &str,
     (width, height): (u32, u32),
     draw: impl FnOnce(&DrawingArea<SVGBackend<'_>, Shift>) -> DrawResult,
@@ -113,6 +113,30 @@ pub(crate) fn render_svg(
         root.present().map_err(|e| failed(boxed(e)))?;
     }
     Ok(svg)
+}
+
+/// A figure that draws itself on any plotters backend, and so renders as PNG and as SVG.
+pub trait Chart {
+    /// The title (also what errors name).
+    fn title(&self) -> &str;
+
+    /// Width and height in pixels.
+    fn size(&self) -> (u32, u32);
+
+    /// Draws the whole figure on `root`.
+    fn draw<DB: DrawingBackend>(&self, root: &DrawingArea<DB, Shift>) -> DrawResult
+    where
+        DB::ErrorType: 'static;
+
+    /// The figure as PNG bytes.
+    fn to_png(&self) -> Result<Vec<u8>, PlotError> {
+        render_png(self.title(), self.size(), |root| self.draw(root))
+    }
+
+    /// The figure as an SVG document.
+    fn to_svg(&self) -> Result<String, PlotError> {
+        render_svg(self.title(), self.size(), |root| self.draw(root))
+    }
 }
 
 /// One named line of points `(x, y)`.
@@ -155,20 +179,14 @@ pub struct Figure {
 
 const TITLE_HEIGHT: u32 = 40;
 
-impl Figure {
+impl Chart for Figure {
+    fn title(&self) -> &str {
+        &self.title
+    }
+
     fn size(&self) -> (u32, u32) {
         let panels = self.panels.len().max(1) as u32;
         (self.panel_size.0, TITLE_HEIGHT + panels * self.panel_size.1)
-    }
-
-    /// The figure as PNG bytes.
-    pub fn to_png(&self) -> Result<Vec<u8>, PlotError> {
-        render_png(&self.title, self.size(), |root| self.draw(root))
-    }
-
-    /// The figure as an SVG document.
-    pub fn to_svg(&self) -> Result<String, PlotError> {
-        render_svg(&self.title, self.size(), |root| self.draw(root))
     }
 
     fn draw<DB: DrawingBackend>(&self, root: &DrawingArea<DB, Shift>) -> DrawResult

@@ -102,7 +102,19 @@ impl EventSegment {
         &self.bytes
     }
 
-    fn push(&mut self, wall_time: f64, step: u64, value: SummaryValue) {
+    fn push(
+        &mut self,
+        wall_time: f64,
+        step: u64,
+        tag: &str,
+        metadata: Option<SummaryMetadata>,
+        value: ValueKind,
+    ) {
+        let value = SummaryValue {
+            tag: tag.into(),
+            metadata,
+            value: Some(value),
+        };
         let event = Event {
             wall_time,
             step: i64::try_from(step).unwrap_or(i64::MAX),
@@ -114,15 +126,8 @@ impl EventSegment {
 
     /// A scalar (stored as f32, as TensorBoard's simple values are).
     pub fn scalar(&mut self, wall_time: f64, step: u64, tag: &str, value: f64) {
-        self.push(
-            wall_time,
-            step,
-            SummaryValue {
-                tag: tag.into(),
-                metadata: None,
-                value: Some(ValueKind::SimpleValue(value as f32)),
-            },
-        );
+        let value = ValueKind::SimpleValue(value as f32);
+        self.push(wall_time, step, tag, None, value);
     }
 
     /// A PNG image; its size is read from its header.
@@ -140,43 +145,30 @@ impl EventSegment {
                 bytes: png.len(),
             });
         };
-        self.push(
-            wall_time,
-            step,
-            SummaryValue {
-                tag: tag.into(),
-                metadata: None,
-                value: Some(ValueKind::Image(SummaryImage {
-                    height,
-                    width,
-                    colorspace,
-                    encoded_image_string: png,
-                })),
-            },
-        );
+        let image = ValueKind::Image(SummaryImage {
+            height,
+            width,
+            colorspace,
+            encoded_image_string: png,
+        });
+        self.push(wall_time, step, tag, None, image);
         Ok(())
     }
 
     /// Text (TensorBoard renders it as Markdown).
     pub fn text(&mut self, wall_time: f64, step: u64, tag: &str, text: &str) {
-        self.push(
-            wall_time,
-            step,
-            SummaryValue {
-                tag: tag.into(),
-                metadata: Some(SummaryMetadata {
-                    plugin_data: Some(PluginData {
-                        plugin_name: "text".into(),
-                        content: Vec::new(),
-                    }),
-                }),
-                value: Some(ValueKind::Tensor(TensorProto {
-                    dtype: DT_STRING,
-                    tensor_shape: Some(TensorShape { dim: Vec::new() }),
-                    string_val: vec![text.as_bytes().to_vec()],
-                })),
-            },
-        );
+        let metadata = SummaryMetadata {
+            plugin_data: Some(PluginData {
+                plugin_name: "text".into(),
+                content: Vec::new(),
+            }),
+        };
+        let strings = ValueKind::Tensor(TensorProto {
+            dtype: DT_STRING,
+            tensor_shape: Some(TensorShape { dim: Vec::new() }),
+            string_val: vec![text.as_bytes().to_vec()],
+        });
+        self.push(wall_time, step, tag, Some(metadata), strings);
     }
 }
 
