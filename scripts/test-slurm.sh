@@ -225,7 +225,9 @@ epoch_of() { grep -E "$2" "$1" | head -n 1 | sed -n 's/.*epoch=\([0-9.]*\).*/\1/
 prepare() {
     local dir="$tmp/$1" steps="$2"
     mkdir -p "$dir"
+    # A commit every 5 steps, so that a suspension finds one and stage 1 is still running.
     "$bin/xfactor-local" --prepare-only --dir "$dir" --port "$port" --listen-host 0.0.0.0 \
+        --checkpoint-every 5 \
         --stage1-steps "$steps" --stage2-steps 10 --no-evaluate >"$dir/prepare.log" 2>&1 \
         || { cat "$dir/prepare.log" >&2; fail "xfactor-local --prepare-only failed"; }
     # Reachable on the node's name (what the workers dial), and the token from the

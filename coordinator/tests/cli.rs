@@ -125,6 +125,7 @@ fn help_lists_every_flag_with_its_default() {
         job.global_batch.to_string(),
         job.micro_batch.to_string(),
     );
+    let checkpoint_every = job.checkpoint_every.to_string();
     help::assert_flags(
         LOCAL,
         &[],
@@ -137,6 +138,7 @@ fn help_lists_every_flag_with_its_default() {
             ("--image-size", Some(&image_size)),
             ("--global-batch", Some(&global_batch)),
             ("--micro-batch", Some(&micro_batch)),
+            ("--checkpoint-every", Some(&checkpoint_every)),
             ("--no-evaluate", None),
             ("--prepare-only", None),
             ("--port", None),

@@ -67,6 +67,9 @@ struct Cli {
     /// Samples per forward pass
     #[arg(long, value_name = "N", default_value_t = defaults().micro_batch)]
     micro_batch: u64,
+    /// Commit a checkpoint every N steps
+    #[arg(long, value_name = "N", default_value_t = defaults().checkpoint_every)]
+    checkpoint_every: u64,
     /// Skips the evaluation stage
     #[arg(long)]
     no_evaluate: bool,
@@ -98,6 +101,7 @@ fn main() -> anyhow::Result<()> {
     job.stage2_steps = cli.stage2_steps;
     job.global_batch = cli.global_batch;
     job.micro_batch = cli.micro_batch;
+    job.checkpoint_every = cli.checkpoint_every;
     job.image_size = cli.image_size;
     job.evaluate = !cli.no_evaluate;
     job.preset = cli.preset;
