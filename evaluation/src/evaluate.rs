@@ -283,7 +283,7 @@ fn evaluate_model(
         {
             save(format!("{prefix}_tps_paths.png"), &|p| {
                 Ok(save_camera_paths(
-                    &format!("{prefix} model: source path and the path of its renders"),
+                    &format!("{prefix}: transferred camera path"),
                     &[
                         ("source video (oracle poses)", &reference[..]),
                         ("renders (oracle poses)", &rendered[..]),
@@ -308,7 +308,7 @@ fn evaluate_model(
     if let Some((reference, predicted)) = paths.first() {
         save(format!("{prefix}_probe_paths.png"), &|p| {
             Ok(save_camera_paths(
-                &format!("{prefix} model: pose probe on a held-out sequence"),
+                &format!("{prefix}: pose probe, held-out path"),
                 &[
                     ("ground truth", &reference[..]),
                     ("probe prediction", &predicted[..]),

@@ -331,7 +331,9 @@ impl Panel {
                 .legend(move |(x, y)| {
                     PathElement::new(vec![(x, y), (x + 20, y)], colour.stroke_width(2))
                 });
-            if points.len() == 1 {
+            // Markers where lines alone could hide a series: a single point, or a path (whose
+            // points may coincide).
+            if points.len() == 1 || self.equal_aspect {
                 chart
                     .draw_series(PointSeries::of_element(
                         points.iter().copied(),
