@@ -1,8 +1,9 @@
 //! The README's first run (`scripts/run.sh`, `LocalJob::demo`): two workers on generated data,
 //! both stages, then the evaluation. Guards that it visibly learns: the trained model is ahead
-//! of the untrained one on every number the run prints (reconstruction PSNR and SSIM, TPS and
-//! pose-probe AUC@30), each by a stated margin. The run is deterministic (every draw derives
-//! from the seed); about two and a half minutes on 2 cores.
+//! of the untrained one on every number of the evaluation report (reconstruction PSNR and SSIM;
+//! for TPS and for the pose probe Rac@5, Tac@5, the rotation, translation and SE(3) AUCs, and
+//! the trajectory errors), each by a stated margin. The run is deterministic (every draw
+//! derives from the seed); about two and a half minutes on 2 cores.
 
 mod common;
 
@@ -12,17 +13,107 @@ use common::Running;
 use coordinator::local::{LocalJob, free_port};
 use serde_json::Value;
 
-/// A reported number: its name, how to read it from one model's report, and the margin by
-/// which the trained model must lead.
-type Measure = (&'static str, fn(&Value) -> f64, f64);
+/// Whether a larger number is better.
+#[derive(Clone, Copy, PartialEq)]
+enum Better {
+    Higher,
+    Lower,
+}
 
-/// AUC@30 of a metrics object of the evaluation report.
-fn auc30(metrics: &Value) -> f64 {
+/// The scores at `threshold` degrees of a metrics object of the evaluation report.
+fn at(metrics: &Value, threshold: u64) -> &Value {
     metrics["thresholds"]
         .as_array()
-        .and_then(|t| t.iter().find(|s| s["threshold"] == 30))
-        .and_then(|s| s["auc"].as_f64())
-        .unwrap_or_else(|| panic!("no AUC@30 in {metrics}"))
+        .and_then(|t| t.iter().find(|s| s["threshold"] == threshold))
+        .unwrap_or_else(|| panic!("no scores at {threshold} degrees in {metrics}"))
+}
+
+fn number(value: &Value) -> f64 {
+    value
+        .as_f64()
+        .unwrap_or_else(|| panic!("{value} is not a number"))
+}
+
+/// Every camera measure of the report's table for `metrics`, named after `label`: its value,
+/// which direction is better and the margin the trained model must lead by.
+fn camera_measures(
+    label: &str,
+    metrics: &Value,
+    se3_margin: f64,
+) -> Vec<(String, f64, Better, f64)> {
+    let twenty = at(metrics, 20);
+    vec![
+        (
+            format!("{label} Rac@5"),
+            number(&at(metrics, 5)["rotation_accuracy"]),
+            Better::Higher,
+            0.01,
+        ),
+        (
+            format!("{label} Tac@5"),
+            number(&at(metrics, 5)["translation_accuracy"]),
+            Better::Higher,
+            0.01,
+        ),
+        (
+            format!("{label} Rot_Auc@20"),
+            number(&twenty["rotation_auc"]),
+            Better::Higher,
+            0.01,
+        ),
+        (
+            format!("{label} Trans_Auc@20"),
+            number(&twenty["translation_auc"]),
+            Better::Higher,
+            0.01,
+        ),
+        (
+            format!("{label} SE3_Auc@20"),
+            number(&twenty["auc"]),
+            Better::Higher,
+            0.01,
+        ),
+        (
+            format!("{label} SE3_Auc@30"),
+            number(&at(metrics, 30)["auc"]),
+            Better::Higher,
+            se3_margin,
+        ),
+        (
+            format!("{label} trajectory error (scale-invariant)"),
+            number(&metrics["trajectory_error_scale_invariant"]),
+            Better::Lower,
+            0.01,
+        ),
+        (
+            format!("{label} trajectory error (unscaled)"),
+            number(&metrics["trajectory_error_unscaled"]),
+            Better::Lower,
+            0.01,
+        ),
+    ]
+}
+
+/// Every measure of one model's report.
+fn measures(model: &Value) -> Vec<(String, f64, Better, f64)> {
+    let reconstruction = &model["reconstruction"];
+    let mut all = vec![
+        (
+            "reconstruction PSNR (dB)".to_string(),
+            number(&reconstruction["psnr"]),
+            Better::Higher,
+            3.0,
+        ),
+        (
+            "reconstruction SSIM".to_string(),
+            number(&reconstruction["ssim"]),
+            Better::Higher,
+            0.2,
+        ),
+    ];
+    all.extend(camera_measures("TPS", &model["tps"]["model"], 0.05));
+    all.extend(camera_measures("probe", &model["probe"]["metrics"], 0.015));
+    all
 }
 
 #[test]
@@ -34,29 +125,25 @@ fn the_first_run_puts_the_trained_model_ahead_on_every_metric() {
     let location = std::path::Path::new(report["evaluation"].as_str().expect("an evaluation"));
     let numbers: Value =
         serde_json::from_slice(&std::fs::read(location.join("report.json")).unwrap()).unwrap();
-    let (trained, untrained) = (&numbers["trained"], &numbers["untrained"]);
-    let measures: [Measure; 4] = [
-        (
-            "reconstruction PSNR (dB)",
-            |m| m["reconstruction"]["psnr"].as_f64().unwrap(),
-            3.0,
-        ),
-        (
-            "reconstruction SSIM",
-            |m| m["reconstruction"]["ssim"].as_f64().unwrap(),
-            0.2,
-        ),
-        ("TPS AUC@30", |m| auc30(&m["tps"]["model"]), 0.05),
-        ("probe AUC@30", |m| auc30(&m["probe"]["metrics"]), 0.015),
-    ];
-    let mut figures = Vec::new();
-    for (name, read, margin) in measures {
-        let (ours, baseline) = (read(trained), read(untrained));
-        figures.push(format!("{name}: {ours:.3} vs {baseline:.3}"));
-        assert!(
-            ours >= baseline + margin,
-            "{name}: trained {ours:.4} is not ahead of untrained {baseline:.4} by {margin}"
-        );
+    let trained = measures(&numbers["trained"]);
+    let untrained = measures(&numbers["untrained"]);
+    assert_eq!(trained.len(), 18);
+    let mut behind = Vec::new();
+    for ((name, ours, better, margin), (_, baseline, _, _)) in trained.iter().zip(&untrained) {
+        println!("{name}: trained {ours:.4} untrained {baseline:.4}");
+        let lead = match better {
+            Better::Higher => ours - baseline,
+            Better::Lower => baseline - ours,
+        };
+        if lead < *margin {
+            behind.push(format!(
+                "{name}: trained {ours:.4} vs untrained {baseline:.4}, lead {lead:.4} < {margin}"
+            ));
+        }
     }
-    println!("{}", figures.join("; "));
+    assert!(
+        behind.is_empty(),
+        "not ahead by the margin:\n{}",
+        behind.join("\n")
+    );
 }
