@@ -6,7 +6,7 @@ use plotters::coord::Shift;
 use plotters::prelude::*;
 use plotters::style::text_anchor::{HPos, Pos, VPos};
 
-use crate::plot::{Chart, DrawResult, FAMILY, PALETTE, boxed};
+use crate::plot::{Chart, DrawResult, FAMILY, PALETTE, boxed, draw_legend};
 
 /// Values of several series over the same measures.
 #[derive(Debug, Clone, PartialEq)]
@@ -116,15 +116,7 @@ impl Chart for BarChart {
                 }))
                 .map_err(boxed)?;
         }
-        chart
-            .configure_series_labels()
-            .label_font((FAMILY, 13).into_font())
-            .background_style(WHITE.mix(0.85))
-            .border_style(RGBColor(160, 160, 160))
-            .position(SeriesLabelPosition::UpperRight)
-            .draw()
-            .map_err(boxed)?;
-        Ok(())
+        draw_legend(&mut chart)
     }
 }
 

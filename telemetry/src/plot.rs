@@ -6,6 +6,8 @@
 use std::sync::Once;
 
 use plotters::coord::Shift;
+use plotters::coord::cartesian::Cartesian2d;
+use plotters::coord::ranged1d::Ranged;
 use plotters::prelude::*;
 
 /// The shipped font (see `telemetry/fonts/LICENSE-DejaVu.txt`).
@@ -344,16 +346,29 @@ impl Panel {
                     .map_err(boxed)?;
             }
         }
-        chart
-            .configure_series_labels()
-            .label_font((FAMILY, 13).into_font())
-            .background_style(WHITE.mix(0.85))
-            .border_style(RGBColor(160, 160, 160))
-            .position(SeriesLabelPosition::UpperRight)
-            .draw()
-            .map_err(boxed)?;
-        Ok(())
+        draw_legend(&mut chart)
     }
+}
+
+/// The legend of a chart's labelled series, in its upper right corner.
+pub(crate) fn draw_legend<'a, DB, X, Y>(
+    chart: &mut ChartContext<'a, DB, Cartesian2d<X, Y>>,
+) -> DrawResult
+where
+    DB: DrawingBackend + 'a,
+    DB::ErrorType: 'static,
+    X: Ranged,
+    Y: Ranged,
+{
+    chart
+        .configure_series_labels()
+        .label_font((FAMILY, 13).into_font())
+        .background_style(WHITE.mix(0.85))
+        .border_style(RGBColor(160, 160, 160))
+        .position(SeriesLabelPosition::UpperRight)
+        .draw()
+        .map_err(boxed)?;
+    Ok(())
 }
 
 /// `value` rounded to two significant digits (tick labels of a logarithmic axis).

@@ -150,6 +150,12 @@ fn main() -> anyhow::Result<()> {
             dir.display()
         );
     }
+    print_figures(&job, started.elapsed().as_secs_f64())
+}
+
+/// Prints the job's figures as one `key=value` line from its report, curves and evaluation,
+/// then where to look.
+fn print_figures(job: &LocalJob, seconds: f64) -> anyhow::Result<()> {
     let report: serde_json::Value = serde_json::from_slice(&std::fs::read(job.report_path())?)?;
     let steps = report["steps"].as_array().cloned().unwrap_or_default();
     let stage = |number: u64| -> Vec<&serde_json::Value> {
@@ -185,10 +191,10 @@ fn main() -> anyhow::Result<()> {
         figures.join(" "),
         report["restarts"],
         report["checksum_mismatches"].as_array().map_or(0, Vec::len),
-        started.elapsed().as_secs_f64(),
+        seconds,
         job.report_path().display()
     );
-    print_where_to_look(&job, report["evaluation"].as_str().map(Path::new));
+    print_where_to_look(job, report["evaluation"].as_str().map(Path::new));
     Ok(())
 }
 
