@@ -271,21 +271,7 @@ impl LocalJob {
             self.checkpoint_every
         );
         if self.evaluate {
-            let e = &self.evaluation;
-            let _ = writeln!(
-                yaml,
-                "evaluate:\n  seed: {}\n  scenes: {}\n  trajectories: {}\n  frames: {}\n  tps_pairs: {}\n  reconstruction_sequences: {}\n  probe: {{steps: {}, batch: {}, width: 64, test_scenes: {}, rotation_from_identity: {}}}",
-                self.seed,
-                e.scenes,
-                e.trajectories,
-                e.frames,
-                e.tps_pairs,
-                e.reconstruction_sequences,
-                e.probe_steps,
-                e.probe_batch,
-                e.probe_test_scenes,
-                e.probe_rotation_from_identity
-            );
+            self.evaluation.write_yaml(self.seed, &mut yaml);
         }
         let _ = writeln!(
             yaml,
@@ -389,6 +375,24 @@ impl Default for LocalEvaluation {
 }
 
 impl LocalEvaluation {
+    /// Appends the `evaluate:` section for a job seeded with `seed`.
+    fn write_yaml(&self, seed: u64, yaml: &mut String) {
+        let _ = writeln!(
+            yaml,
+            "evaluate:\n  seed: {}\n  scenes: {}\n  trajectories: {}\n  frames: {}\n  tps_pairs: {}\n  reconstruction_sequences: {}\n  probe: {{steps: {}, batch: {}, width: 64, test_scenes: {}, rotation_from_identity: {}}}",
+            seed,
+            self.scenes,
+            self.trajectories,
+            self.frames,
+            self.tps_pairs,
+            self.reconstruction_sequences,
+            self.probe_steps,
+            self.probe_batch,
+            self.probe_test_scenes,
+            self.probe_rotation_from_identity
+        );
+    }
+
     /// The first run's: 8 scenes, 32 pairs, 1000 probe steps of 64 (a few seconds).
     pub fn demo() -> Self {
         Self {
