@@ -8,14 +8,11 @@
 
 use serde::{Deserialize, Serialize};
 
-use crate::index::{IndexError, index_paths};
+use crate::index::{CACHE_DIR, IndexError, check_indexed, index_paths};
 use settings::data::{DatasetKind, ListingFingerprint};
 
 use crate::manifest::Manifest;
 use crate::store::{DataRoot, Listed, StoreError};
-
-/// Folder under the dataset root that holds cached manifests (never indexed as data).
-pub const CACHE_DIR: &str = ".xfactor";
 
 /// The fingerprint of a listing (sorted by path, as [`DataRoot::list`] returns it).
 pub fn fingerprint(listing: &[Listed]) -> ListingFingerprint {
@@ -113,7 +110,7 @@ pub async fn load_or_index(
         return Ok((cached, CacheUse::Reused));
     }
     let paths: Vec<&str> = listing.iter().map(|l| l.path.as_str()).collect();
-    let indexed = super::index::check_indexed(root, dataset, &paths, index_paths(dataset, &paths))?;
+    let indexed = check_indexed(root, dataset, &paths, index_paths(dataset, &paths))?;
     let cached = CachedManifest {
         fingerprint,
         manifest: indexed.manifest,

@@ -4,7 +4,7 @@
 
 use image::{ImageReader, RgbImage};
 
-use crate::batch::Image;
+use crate::frame::Image;
 use crate::resize::center_crop_resize;
 
 /// Why a frame could not be turned into an image; the loader skips and counts such frames.

@@ -8,25 +8,27 @@
 //! The coordinator links this crate to index datasets and to read and write its checkpoint
 //! store; workers link it (through trainer-core) to read their samples.
 
-pub mod batch;
+mod batch;
 pub mod cache;
 pub mod decode;
+mod frame;
 pub mod frame_order;
 pub mod index;
-pub mod manifest;
+mod manifest;
 pub mod prefetch;
 pub mod resize;
 pub mod rng;
-pub mod sampler;
+mod sampler;
 pub mod scenes;
-pub mod shard;
+mod shard;
 pub mod source;
 pub mod spec;
 pub mod split;
 pub mod store;
 pub mod synthetic;
 
-pub use batch::{BatchSource, Image, Samples};
+pub use batch::{BatchSource, FrameError, SampleError, Samples};
+pub use frame::Image;
 pub use manifest::{Manifest, Sequence, Split};
 pub use sampler::{WindowDraw, WindowSampler};
 pub use settings::data::{DatasetKind, DatasetSampling, SamplerConfig};

@@ -6,7 +6,7 @@ use std::collections::BTreeMap;
 use std::sync::{Arc, Condvar, Mutex, MutexGuard, PoisonError};
 use std::thread::JoinHandle;
 
-use crate::batch::{BatchSource, Samples};
+use crate::batch::{BatchSource, SampleError, Samples};
 
 /// The request pattern the trainer follows: for each step, micro-batches of `micro_batch`
 /// samples covering `first_sample..first_sample + global_batch` (a data-parallel rank asks for
@@ -50,7 +50,9 @@ impl Schedule {
 struct State {
     next_claim: u64,
     consumed: u64,
-    ready: BTreeMap<u64, Result<Samples, String>>,
+    /// Results by request index, each removed when handed out (errors included), so none is
+    /// ever handed out twice.
+    ready: BTreeMap<u64, Result<Samples, SampleError>>,
     stop: bool,
 }
 
@@ -141,7 +143,7 @@ fn fill<S: BatchSource>(source: &S, schedule: Schedule, shared: &Shared) {
 }
 
 impl<S: BatchSource + Send + 'static> BatchSource for Prefetched<S> {
-    fn samples(&self, step: u64, first: u64, count: usize) -> Result<Samples, String> {
+    fn samples(&self, step: u64, first: u64, count: usize) -> Result<Samples, SampleError> {
         let Some(index) = self.schedule.index(step, first, count) else {
             return self.inner.samples(step, first, count);
         };
@@ -191,7 +193,7 @@ impl<S: BatchSource + Send + 'static> Drop for Prefetched<S> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::batch::Image;
+    use crate::frame::Image;
     use std::sync::atomic::{AtomicU64, Ordering};
     use std::time::Duration;
 
@@ -201,7 +203,7 @@ mod tests {
     }
 
     impl BatchSource for Slow {
-        fn samples(&self, step: u64, first: u64, count: usize) -> Result<Samples, String> {
+        fn samples(&self, step: u64, first: u64, count: usize) -> Result<Samples, SampleError> {
             self.calls.fetch_add(1, Ordering::SeqCst);
             std::thread::sleep(Duration::from_millis(5));
             let image = |v: u64| Image {

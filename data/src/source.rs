@@ -14,8 +14,8 @@ use futures::future::join_all;
 use crate::decode::decode_frame;
 use settings::data::{DatasetKind, SamplerConfig};
 
-use crate::batch::Image;
-use crate::batch::{BatchSource, Samples};
+use crate::batch::{BatchSource, FrameError, SampleError, Samples};
+use crate::frame::Image;
 use crate::manifest::{Manifest, Split};
 use crate::rng::Stream;
 use crate::sampler::WindowSampler;
@@ -107,28 +107,29 @@ impl DatasetSource {
     }
 
     /// `(frame index, image)` of every frame of global sample `sample` at `step`.
-    pub fn sample(&self, step: u64, sample: u64) -> Result<Vec<(u64, Image)>, String> {
+    pub fn sample(&self, step: u64, sample: u64) -> Result<Vec<(u64, Image)>, SampleError> {
         let available: Vec<DatasetKind> = self
             .datasets
             .iter()
             .filter(|d| d.manifest.sequences.iter().any(|s| s.split == self.split))
             .map(|d| d.kind)
             .collect();
+        let mut last_unusable = None;
         for redraw in 0..MAX_REDRAWS {
             let mut stream = Stream::new(&[self.seed, SOURCE_STREAM, step, sample, redraw]);
             let kind = self
                 .sampler
                 .choose_dataset(&available, &mut stream)
-                .ok_or_else(|| format!("no dataset has {:?} sequences to sample", self.split))?;
+                .ok_or(SampleError::NoSequences { split: self.split })?;
             let dataset = self
                 .datasets
                 .iter()
                 .find(|d| d.kind == kind)
-                .ok_or_else(|| format!("dataset {} is not configured", kind.name()))?;
+                .ok_or(SampleError::DatasetNotConfigured { dataset: kind })?;
             let settings = self
                 .sampler
                 .dataset(kind)
-                .ok_or_else(|| format!("dataset {} has no sampler settings", kind.name()))?;
+                .ok_or(SampleError::NoSamplerSettings { dataset: kind })?;
             let sequences: Vec<_> = dataset
                 .manifest
                 .sequences
@@ -147,41 +148,53 @@ impl DatasetSource {
                 .iter()
                 .map(|&f| sequence.frames[f].as_str())
                 .collect();
-            let reads = self
-                .runtime
-                .block_on(join_all(paths.iter().map(|p| dataset.root.read(p))));
-            let mut images = Vec::with_capacity(paths.len());
-            for (read, path) in reads.into_iter().zip(&paths) {
-                let decoded = match read {
-                    Ok(bytes) => decode_frame(&bytes, path, self.image_size)
-                        .map_err(|e| Box::new(e) as Box<dyn std::error::Error>),
-                    Err(error) => Err(Box::new(error) as Box<dyn std::error::Error>),
-                };
-                match decoded {
-                    Ok(image) => images.push(image),
-                    Err(error) => {
-                        self.skip(dataset, path, error.as_ref());
-                        break;
-                    }
+            match self.read_frames(dataset, &paths) {
+                Ok(images) => {
+                    return Ok(window
+                        .frames
+                        .iter()
+                        .map(|&f| f as u64)
+                        .zip(images)
+                        .collect());
                 }
-            }
-            if images.len() == paths.len() {
-                return Ok(window
-                    .frames
-                    .iter()
-                    .map(|&f| f as u64)
-                    .zip(images)
-                    .collect());
+                Err(unusable) => last_unusable = Some(unusable),
             }
         }
-        Err(format!(
-            "step {step} sample {sample}: no decodable frames after {MAX_REDRAWS} draws"
-        ))
+        Err(SampleError::NoUsableFrames {
+            step,
+            sample,
+            draws: MAX_REDRAWS,
+            last: last_unusable,
+        })
+    }
+
+    /// Reads the frames at `paths` of `dataset` (concurrently, each object once) and decodes
+    /// them. The first frame that cannot be read or decoded is skipped (logged and counted) and
+    /// returned, so the caller redraws the sample.
+    fn read_frames(
+        &self,
+        dataset: &IndexedDataset,
+        paths: &[&str],
+    ) -> Result<Vec<Image>, FrameError> {
+        let reads = self
+            .runtime
+            .block_on(join_all(paths.iter().map(|p| dataset.root.read(p))));
+        reads
+            .into_iter()
+            .zip(paths)
+            .map(|(read, path)| {
+                read.map_err(FrameError::from)
+                    .and_then(|bytes| {
+                        decode_frame(&bytes, path, self.image_size).map_err(FrameError::from)
+                    })
+                    .inspect_err(|unusable| self.skip(dataset, path, unusable))
+            })
+            .collect()
     }
 }
 
 impl BatchSource for DatasetSource {
-    fn samples(&self, step: u64, first_sample: u64, count: usize) -> Result<Samples, String> {
+    fn samples(&self, step: u64, first_sample: u64, count: usize) -> Result<Samples, SampleError> {
         let samples: Vec<Vec<(u64, Image)>> = (first_sample..first_sample + count as u64)
             .map(|sample| self.sample(step, sample))
             .collect::<Result<_, _>>()?;
@@ -189,12 +202,16 @@ impl BatchSource for DatasetSource {
             return Ok(Samples::Pairs(
                 samples
                     .into_iter()
-                    .map(|mut frames| {
+                    .zip(first_sample..)
+                    .map(|(mut frames, sample)| {
+                        let held = frames.len();
                         let second = frames.pop().map(|(_, image)| image);
                         let first = frames.pop().map(|(_, image)| image);
-                        first
-                            .zip(second)
-                            .ok_or_else(|| "a pair needs two frames".to_string())
+                        first.zip(second).ok_or(SampleError::IncompletePair {
+                            step,
+                            sample,
+                            frames: held,
+                        })
                     })
                     .collect::<Result<_, _>>()?,
             ));

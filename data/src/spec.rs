@@ -10,7 +10,7 @@ use std::sync::{Arc, Mutex};
 
 use settings::data::{DataSource, DataSpec, DatasetKind, StoredDataset};
 
-use crate::batch::{BatchSource, Samples};
+use crate::batch::{BatchSource, SampleError, Samples};
 use crate::cache::{CacheError, read_cached};
 use crate::manifest::{Manifest, Split};
 use crate::scenes::SceneConfig;
@@ -207,11 +207,11 @@ impl RankSource {
 
 impl StoredShards {
     /// The loader over this rank's shard of `epoch`, built on first use.
-    fn epoch_source(&self, epoch: u64) -> Result<Arc<DatasetSource>, String> {
+    fn epoch_source(&self, epoch: u64) -> Result<Arc<DatasetSource>, SampleError> {
         let mut current = self
             .current
             .lock()
-            .map_err(|_| "data loader lock poisoned".to_string())?;
+            .map_err(|_| SampleError::LoaderPoisoned)?;
         if let Some((loaded, source)) = current.as_ref()
             && *loaded == epoch
         {
@@ -254,7 +254,7 @@ impl StoredShards {
                 self.spec.image_size,
                 self.spec.seed,
             )
-            .map_err(|e| e.to_string())?,
+            .map_err(|source| SampleError::LoaderStart { epoch, source })?,
         );
         *current = Some((epoch, source.clone()));
         Ok(source)
@@ -262,7 +262,7 @@ impl StoredShards {
 }
 
 impl BatchSource for RankSource {
-    fn samples(&self, step: u64, first_sample: u64, count: usize) -> Result<Samples, String> {
+    fn samples(&self, step: u64, first_sample: u64, count: usize) -> Result<Samples, SampleError> {
         match &self.inner {
             RankData::Generated(dataset) => dataset.samples(step, first_sample, count),
             RankData::Stored(stored) => {

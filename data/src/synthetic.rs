@@ -1,8 +1,8 @@
 //! A dataset of generated scenes: every trajectory rendered in every scene, so the same camera
 //! motion exists in many places. It feeds the trainer in tests, demos and evaluation.
 
-use crate::batch::Image;
-use crate::batch::{BatchSource, Samples};
+use crate::batch::{BatchSource, SampleError, Samples};
+use crate::frame::Image;
 use crate::manifest::Split;
 use crate::rng::Stream;
 use crate::scenes::{CameraPose, Scene, SceneConfig, Trajectory};
@@ -107,16 +107,35 @@ impl SyntheticDataset {
     }
 }
 
+/// Why a frame could not be encoded as PNG.
+#[derive(Debug, thiserror::Error)]
+pub enum EncodeError {
+    /// The pixel buffer does not hold `height * width * 3` values.
+    #[error("{values} values do not make a {width}x{height} RGB frame")]
+    Size {
+        /// Frame columns.
+        width: usize,
+        /// Frame rows.
+        height: usize,
+        /// Values in the pixel buffer.
+        values: usize,
+    },
+    /// The PNG encoder failed.
+    #[error("the PNG encoder failed")]
+    Png(#[source] image::ImageError),
+}
+
 /// Why a generated dataset could not be written.
 #[derive(Debug, thiserror::Error)]
 pub enum WriteError {
     /// Encoding a frame failed.
-    #[error("encoding {path}: {reason}")]
+    #[error("encoding {path}")]
     Encode {
         /// Object being written.
         path: String,
-        /// The encoder's error.
-        reason: String,
+        /// Why the frame could not be encoded.
+        #[source]
+        source: EncodeError,
     },
     /// The store refused a write.
     #[error(transparent)]
@@ -148,9 +167,9 @@ impl SyntheticDataset {
                 let path = format!("{split}/images/{name}/{index:03}.png");
                 root.write(
                     &path,
-                    encode_png(frame).map_err(|reason| WriteError::Encode {
+                    encode_png(frame).map_err(|source| WriteError::Encode {
                         path: path.clone(),
-                        reason,
+                        source,
                     })?,
                 )
                 .await?;
@@ -172,31 +191,36 @@ impl SyntheticDataset {
     }
 }
 
-fn encode_png(frame: &Image) -> Result<Vec<u8>, String> {
+fn encode_png(frame: &Image) -> Result<Vec<u8>, EncodeError> {
     let bytes: Vec<u8> = frame
         .pixels
         .iter()
         .map(|v| ((v + 1.0) * 127.5).round().clamp(0.0, 255.0) as u8)
         .collect();
-    let image = image::RgbImage::from_raw(frame.width as u32, frame.height as u32, bytes)
-        .ok_or_else(|| "pixel buffer does not match the frame size".to_string())?;
+    let image = image::RgbImage::from_raw(frame.width as u32, frame.height as u32, bytes).ok_or(
+        EncodeError::Size {
+            width: frame.width,
+            height: frame.height,
+            values: frame.pixels.len(),
+        },
+    )?;
     let mut out = std::io::Cursor::new(Vec::new());
     image
         .write_to(&mut out, image::ImageFormat::Png)
-        .map_err(|e| e.to_string())?;
+        .map_err(EncodeError::Png)?;
     Ok(out.into_inner())
 }
 
 impl BatchSource for SyntheticDataset {
-    fn samples(&self, step: u64, first_sample: u64, count: usize) -> Result<Samples, String> {
+    fn samples(&self, step: u64, first_sample: u64, count: usize) -> Result<Samples, SampleError> {
         let needed = self.views.max(2);
         if let Some(short) = self.sequences.iter().find(|s| s.frames.len() < needed) {
-            return Err(format!(
-                "synthetic sequence (scene {}, trajectory {}) has {} frames, samples need {needed}",
-                short.scene,
-                short.trajectory,
-                short.frames.len()
-            ));
+            return Err(SampleError::SequenceTooShort {
+                scene: short.scene,
+                trajectory: short.trajectory,
+                frames: short.frames.len(),
+                needed,
+            });
         }
         let samples = first_sample..first_sample + count as u64;
         if self.views > 2 {
@@ -257,6 +281,7 @@ mod tests {
             dataset
                 .samples(0, 0, 1)
                 .unwrap_err()
+                .to_string()
                 .contains("samples need 7")
         );
         let a = dataset.sequence(0, 2).unwrap();

@@ -12,7 +12,7 @@ use telemetry::plot::Chart;
 
 use crate::error::{EvalError, io_error};
 use crate::evaluate::EvaluationReport;
-use crate::metrics::camera::{CameraMetrics, THRESHOLDS};
+use crate::metrics::{CameraMetrics, THRESHOLDS};
 
 /// One run's report and the name its row gets.
 #[derive(Debug, Clone)]
@@ -218,8 +218,8 @@ mod tests {
     use settings::evaluation::EvaluationSpec;
 
     use super::*;
-    use crate::evaluate::{ModelReport, ReconstructionReport};
-    use crate::metrics::camera::PairError;
+    use crate::evaluate::ModelReport;
+    use crate::metrics::{PairError, ReconstructionReport};
     use crate::probe::ProbeReport;
     use crate::tps::TpsReport;
 

@@ -6,6 +6,7 @@ use std::path::PathBuf;
 use data::decode::DecodeError;
 use data::index::IndexError;
 use data::store::StoreError;
+use settings::evaluation::EvaluationSpecError;
 use trainer_core::checkpoint::CheckpointError;
 
 use crate::figures::FigureError;
@@ -48,6 +49,9 @@ pub enum EvalError {
         /// What the file system said.
         reason: String,
     },
+    /// The evaluation spec breaks one of its limits.
+    #[error(transparent)]
+    Spec(#[from] EvaluationSpecError),
     /// The inputs or the spec cannot be evaluated as given.
     #[error("{0}")]
     Invalid(String),

@@ -17,7 +17,7 @@ use trainer_core::{XFactor, XFactorConfig, checkpoint};
 use crate::error::{EvalError, io_error};
 use crate::figures::{save_camera_paths, save_grid};
 use crate::inference::{pose_latents, probe_features, render_targets, transfer};
-use crate::metrics::{CameraMetrics, psnr, ssim};
+use crate::metrics::{CameraMetrics, ReconstructionReport, psnr, ssim};
 use crate::oracle::{
     ClassicalOracle, ClassicalSettings, ExternalOracle, GroundTruthOracle, PoseOracle,
 };
@@ -28,19 +28,6 @@ use settings::evaluation::{EvaluationSpec, OracleSpec};
 
 /// Pairs drawn in the render-grid figure.
 const GRID_PAIRS: usize = 3;
-
-/// Autoencoding quality: targets rendered with poses read from the same video.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
-pub struct ReconstructionReport {
-    /// Frames rendered.
-    pub frames: usize,
-    /// Mean PSNR, dB.
-    pub psnr: f64,
-    /// Mean SSIM.
-    pub ssim: f64,
-    /// Mean LPIPS, when weights were given.
-    pub lpips: Option<f64>,
-}
 
 /// Every number for one model.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -335,7 +322,7 @@ pub fn run_evaluation(
 ) -> Result<EvaluationReport, EvalError> {
     let started = Instant::now();
     let _span = tracing::info_span!("evaluate", checkpoint = %weights.display()).entered();
-    spec.validate().map_err(EvalError::Invalid)?;
+    spec.validate()?;
     std::fs::create_dir_all(out_dir).map_err(|e| io_error(out_dir, e))?;
     let (model, config) = checkpoint::load(weights, device)?;
     let scene_config = SceneConfig {

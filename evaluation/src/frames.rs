@@ -1,6 +1,6 @@
 //! Reading videos and scenes: one image file, a directory of frames, or an object-store prefix
 //! (`s3://`, `gs://`, `az://`, `file://`), frames ordered by the number in their names, centre-cropped
-//! and resized to the model's size as the release does.
+//! and resized to the model's size as the release does; or a video file, decoded by ffmpeg.
 
 use std::path::Path;
 
@@ -10,6 +10,7 @@ use data::frame_order::sort_frames;
 use data::store::DataRoot;
 
 use crate::error::{EvalError, io_error};
+use crate::video::{VideoError, decode_video, evenly_spaced};
 
 /// File name endings read as frames.
 const FRAME_EXTENSIONS: [&str; 3] = [".jpg", ".jpeg", ".png"];
@@ -56,6 +57,46 @@ pub fn load_frames(source: &str, size: usize) -> Result<Vec<Image>, EvalError> {
     block_on(load_frames_async(source, size))
 }
 
+/// `count` of `items` spread evenly, first and last included (all of them without a count or
+/// when there are no more).
+fn sample<T: Clone>(items: Vec<T>, count: Option<usize>) -> Vec<T> {
+    match count {
+        Some(count) if count < items.len() => evenly_spaced(items.len(), count)
+            .into_iter()
+            .map(|i| items[i].clone())
+            .collect(),
+        _ => items,
+    }
+}
+
+/// The frames of `source` as `size x size` model images: a video file (anything but a
+/// `.jpg`/`.jpeg`/`.png` file) is decoded by ffmpeg and `count.unwrap_or(video_default)`
+/// frames are sampled from it; an image, a frame directory or an object-store prefix is read
+/// as [`load_frames`] does and sampled to `count` when given.
+pub fn load_source(
+    source: &str,
+    size: usize,
+    count: Option<usize>,
+    video_default: usize,
+) -> Result<Vec<Image>, EvalError> {
+    if count == Some(0) {
+        return Err(VideoError::NoFrames.into());
+    }
+    if !source.contains("://") {
+        let path = Path::new(source);
+        if !path.exists() {
+            return Err(VideoError::Missing {
+                path: path.to_path_buf(),
+            }
+            .into());
+        }
+        if path.is_file() && !is_frame(source) {
+            return Ok(decode_video(path, size, count.unwrap_or(video_default))?);
+        }
+    }
+    Ok(sample(load_frames(source, size)?, count))
+}
+
 /// Runs a store read to completion on a runtime of its own, for callers outside one (the
 /// command-line tools and the worker's evaluation step).
 pub(crate) fn block_on<T>(
@@ -99,5 +140,27 @@ mod tests {
         assert_eq!(single.len(), 1);
         assert!(load_frames(dir.join("nested/missing").to_str().unwrap(), 4).is_err());
         std::fs::remove_dir_all(&dir).unwrap();
+    }
+
+    #[test]
+    fn samples_keep_both_ends_and_a_missing_count_keeps_all() {
+        assert_eq!(
+            sample(vec!['a', 'b', 'c', 'd', 'e'], Some(3)),
+            ['a', 'c', 'e']
+        );
+        assert_eq!(sample(vec!['a', 'b'], None), ['a', 'b']);
+    }
+
+    #[test]
+    fn missing_inputs_and_zero_counts_are_refused() {
+        let missing = load_source("/no/such/video.mp4", 8, None, 4).unwrap_err();
+        assert!(
+            missing.to_string().contains("/no/such/video.mp4"),
+            "{missing}"
+        );
+        assert!(matches!(
+            load_source("/", 8, Some(0), 4),
+            Err(EvalError::Video(VideoError::NoFrames))
+        ));
     }
 }

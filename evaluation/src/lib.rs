@@ -4,23 +4,23 @@
 //! pose probe, and the comparison of several runs' reports.
 
 pub mod compare;
-pub mod error;
-pub mod figures;
-pub mod frames;
-pub mod geometry;
-pub mod inference;
+mod error;
+mod figures;
+mod frames;
+mod geometry;
+mod inference;
 pub mod metrics;
 pub mod oracle;
-pub mod transfer;
-pub mod video;
+mod transfer;
+mod video;
 
 pub use error::EvalError;
 pub use transfer::{TransferOutput, TransferRequest, run_transfer, run_transfer_sampled};
 pub use video::Sampling;
 pub mod evaluate;
-pub mod probe;
+mod probe;
 pub mod sequences;
-pub mod so3;
-pub mod tps;
+mod so3;
+mod tps;
 
 pub use evaluate::{EvaluationReport, run_evaluation};

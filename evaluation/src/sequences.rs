@@ -12,8 +12,8 @@ use settings::data::DatasetKind;
 use settings::evaluation::SequenceProtocol;
 
 use crate::error::EvalError;
-use crate::evaluate::ReconstructionReport;
 use crate::frames::block_on;
+use crate::metrics::ReconstructionReport;
 use crate::video::evenly_spaced;
 
 /// The protocol's frames of a `len`-frame sequence: `length` indices spread evenly over it,

@@ -11,10 +11,9 @@ use trainer_core::checkpoint;
 
 use crate::error::{EvalError, io_error};
 use crate::figures::{save_gif, save_grid, save_png};
+use crate::frames::load_source;
 use crate::inference::transfer;
-use crate::video::{
-    DEFAULT_VIDEO_FRAMES, Sampling, evenly_spaced, load_source, write_transfer_video,
-};
+use crate::video::{DEFAULT_VIDEO_FRAMES, Sampling, evenly_spaced, write_transfer_video};
 
 /// Columns of the comparison strip (evenly spaced frames of the trajectory).
 const STRIP_COLUMNS: usize = 8;

@@ -10,9 +10,6 @@ use data::Image;
 use data::decode::to_training_frame;
 use image::RgbImage;
 
-use crate::error::EvalError;
-use crate::frames::{is_frame, load_frames};
-
 /// Trajectory frames taken from a video when `--frames` is not given: the length of the
 /// example videos, enough for a smooth clip, cheap to render on a CPU.
 pub const DEFAULT_VIDEO_FRAMES: usize = 30;
@@ -91,56 +88,26 @@ pub fn evenly_spaced(len: usize, count: usize) -> Vec<usize> {
     }
 }
 
-fn sample<T: Clone>(items: Vec<T>, count: Option<usize>) -> Vec<T> {
-    match count {
-        Some(count) if count < items.len() => evenly_spaced(items.len(), count)
-            .into_iter()
-            .map(|i| items[i].clone())
-            .collect(),
-        _ => items,
-    }
-}
-
-/// The frames of `source` as `size x size` model images: a video file (anything but a
-/// `.jpg`/`.jpeg`/`.png` file) is decoded by ffmpeg and `count.unwrap_or(video_default)`
-/// frames are sampled from it; an image, a frame directory or an object-store prefix is read
-/// as [`load_frames`] does and sampled to `count` when given.
-pub fn load_source(
-    source: &str,
-    size: usize,
-    count: Option<usize>,
-    video_default: usize,
-) -> Result<Vec<Image>, EvalError> {
-    if count == Some(0) {
-        return Err(VideoError::NoFrames.into());
-    }
-    if !source.contains("://") {
-        let path = Path::new(source);
-        if !path.exists() {
-            return Err(VideoError::Missing {
-                path: path.to_path_buf(),
-            }
-            .into());
-        }
-        if path.is_file() && !is_frame(source) {
-            return Ok(decode_video(path, size, count.unwrap_or(video_default))?);
-        }
-    }
-    Ok(sample(load_frames(source, size)?, count))
-}
-
-/// Runs `program` with `args` to the end; its stdout, or its stderr as the reason it failed.
-fn run_tool(program: &'static str, args: &[&str]) -> Result<Result<String, String>, VideoError> {
+/// Runs `program` with `args` to the end and returns its stdout. A program that cannot be
+/// started is [`VideoError::ToolAbsent`]; one that runs and fails becomes `failed(its stderr)`,
+/// the error its caller reports for that tool.
+fn run_tool(
+    program: &'static str,
+    args: &[&str],
+    failed: impl FnOnce(String) -> VideoError,
+) -> Result<String, VideoError> {
     let output = Command::new(program)
         .args(args)
         .stdin(Stdio::null())
         .output()
         .map_err(|source| VideoError::ToolAbsent { program, source })?;
-    Ok(if output.status.success() {
+    if output.status.success() {
         Ok(String::from_utf8_lossy(&output.stdout).into_owned())
     } else {
-        Err(String::from_utf8_lossy(&output.stderr).trim().to_string())
-    })
+        Err(failed(
+            String::from_utf8_lossy(&output.stderr).trim().to_string(),
+        ))
+    }
 }
 
 /// Width, height and frame count of the first video stream (`ffprobe -count_packets` reads
@@ -165,8 +132,8 @@ fn probe(path: &Path) -> Result<(usize, usize, usize), VideoError> {
             "csv=p=0",
             &name,
         ],
-    )?
-    .map_err(not_video)?;
+        not_video,
+    )?;
     let numbers: Vec<usize> = line
         .trim()
         .split(',')
@@ -331,24 +298,10 @@ mod tests {
         assert_eq!(evenly_spaced(3, 8), vec![0, 1, 2]);
         assert_eq!(evenly_spaced(10, 1), vec![0]);
         assert_eq!(evenly_spaced(10, 0), Vec::<usize>::new());
-        assert_eq!(
-            sample(vec!['a', 'b', 'c', 'd', 'e'], Some(3)),
-            ['a', 'c', 'e']
-        );
-        assert_eq!(sample(vec!['a', 'b'], None), ['a', 'b']);
     }
 
     #[test]
-    fn inputs_that_are_not_videos_are_named_in_the_error() {
-        let missing = load_source("/no/such/video.mp4", 8, None, 4).unwrap_err();
-        assert!(
-            missing.to_string().contains("/no/such/video.mp4"),
-            "{missing}"
-        );
-        assert!(matches!(
-            load_source("/", 8, Some(0), 4),
-            Err(EvalError::Video(VideoError::NoFrames))
-        ));
+    fn files_that_are_not_videos_are_named_in_the_error() {
         let text =
             std::env::temp_dir().join(format!("xfactor-not-a-video-{}.mp4", std::process::id()));
         std::fs::write(&text, "plain text").unwrap();

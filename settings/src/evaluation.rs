@@ -55,10 +55,35 @@ pub struct SequenceProtocol {
     pub count: usize,
 }
 
+/// A limit of [`EvaluationSpec`] that a spec breaks, naming the key as a YAML reader writes it.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum EvaluationSpecError {
+    /// A top-level or `probe.` key is out of its range.
+    #[error("{key}: expected {expected}")]
+    OutOfRange {
+        /// The key, `probe.`-prefixed for the probe's.
+        key: &'static str,
+        /// The range it must lie in, and why.
+        expected: &'static str,
+    },
+    /// A sequence protocol asks for fewer than two frames per sequence.
+    #[error("sequences[{index}].length: expected at least 2 (a context frame and a target)")]
+    SequenceTooShort {
+        /// Position of the protocol in `sequences`.
+        index: usize,
+    },
+    /// A sequence protocol asks for no sequences.
+    #[error("sequences[{index}].count: expected at least 1")]
+    NoSequences {
+        /// Position of the protocol in `sequences`.
+        index: usize,
+    },
+}
+
 impl EvaluationSpec {
     /// Checks the limits the evaluation relies on, naming the key, so a cluster YAML is refused
     /// when it is read rather than after training.
-    pub fn validate(&self) -> Result<(), String> {
+    pub fn validate(&self) -> Result<(), EvaluationSpecError> {
         let checks = [
             (
                 self.scenes < 2,
@@ -82,17 +107,15 @@ impl EvaluationSpec {
                 "at least 1 and fewer than `scenes` (the rest train the probe)",
             ),
         ];
-        if let Some((_, key, expected)) = checks.iter().find(|(bad, _, _)| *bad) {
-            return Err(format!("{key}: expected {expected}"));
+        if let Some(&(_, key, expected)) = checks.iter().find(|(bad, _, _)| *bad) {
+            return Err(EvaluationSpecError::OutOfRange { key, expected });
         }
         for (index, protocol) in self.sequences.iter().enumerate() {
             if protocol.length < 2 {
-                return Err(format!(
-                    "sequences[{index}].length: expected at least 2 (a context frame and a target)"
-                ));
+                return Err(EvaluationSpecError::SequenceTooShort { index });
             }
             if protocol.count == 0 {
-                return Err(format!("sequences[{index}].count: expected at least 1"));
+                return Err(EvaluationSpecError::NoSequences { index });
             }
         }
         Ok(())

@@ -6,14 +6,15 @@
 
 pub mod commit;
 pub mod data;
-pub mod device;
+mod device;
 pub mod evaluation;
 pub mod model;
 pub mod objective;
 pub mod optim;
 pub mod phase;
 pub mod train;
+pub mod work;
 
-pub use device::DeviceChoice;
+pub use device::{DeviceChoice, UnknownDevice};
 pub use model::XFactorConfig;
 pub use phase::Phase;

@@ -4,6 +4,8 @@
 
 use std::fmt::Write;
 
+use crate::exposition::format_value;
+
 /// Upper bounds for durations from half a millisecond (a small all-reduce on loopback) to ten
 /// minutes (a paper-model checkpoint upload over a slow link), about 2.5x apart.
 pub const SECONDS_BUCKETS: &[f64] = &[
@@ -49,17 +51,13 @@ impl Histogram {
         let infinite = f64::INFINITY;
         for (bound, count) in bounds.iter().chain([&infinite]).zip(&self.counts) {
             cumulative += count;
-            let le = super::metrics::format_value(*bound);
+            let le = format_value(*bound);
             let _ = writeln!(
                 text,
                 "{name}_bucket{{{inner}{separator}le=\"{le}\"}} {cumulative}"
             );
         }
-        let _ = writeln!(
-            text,
-            "{name}_sum{labels} {}",
-            super::metrics::format_value(self.sum)
-        );
+        let _ = writeln!(text, "{name}_sum{labels} {}", format_value(self.sum));
         let _ = writeln!(text, "{name}_count{labels} {cumulative}");
     }
 }

@@ -33,9 +33,15 @@ pub enum HttpError {
     },
 }
 
-/// What `/healthz` asks: `Ok` answers 200 `ok`, `Err(reason)` answers 503 with the reason, so a
-/// liveness probe restarts a process that is up but no use (a worker stuck in its step).
-pub type HealthCheck = Arc<dyn Fn() -> Result<(), String> + Send + Sync>;
+/// Why a process that is up is no use: `/healthz` answers 503 with this text.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[error("{0}")]
+pub struct Unhealthy(pub String);
+
+/// What `/healthz` asks: `Ok` answers 200 `ok`, `Err(Unhealthy(reason))` answers 503 with the
+/// reason, so a liveness probe restarts a process that is up but no use (a worker stuck in its
+/// step).
+pub type HealthCheck = Arc<dyn Fn() -> Result<(), Unhealthy> + Send + Sync>;
 
 /// A check that always answers `ok`: the process is healthy while it answers at all.
 pub fn always_healthy() -> HealthCheck {
@@ -95,7 +101,7 @@ pub async fn serve(
 async fn answer(
     mut stream: TcpStream,
     registry: &Registry,
-    health: &(dyn Fn() -> Result<(), String> + Send + Sync),
+    health: &(dyn Fn() -> Result<(), Unhealthy> + Send + Sync),
 ) -> std::io::Result<()> {
     let mut head = Vec::with_capacity(512);
     let mut buffer = [0u8; 1024];
@@ -181,7 +187,7 @@ mod tests {
             if flag.load(std::sync::atomic::Ordering::SeqCst) {
                 Ok(())
             } else {
-                Err("removed by the coordinator".to_string())
+                Err(Unhealthy("removed by the coordinator".to_string()))
             }
         });
         let address = serve("127.0.0.1:0", Arc::clone(&registry), health)

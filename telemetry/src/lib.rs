@@ -1,7 +1,7 @@
 //! `telemetry`: how the coordinator and the workers tell operators what they are doing.
 //!
 //! Log lines on stderr set up by [`logging`] (with the shared `--log-format` flag), Prometheus
-//! series (gauges, counters, histograms) in a [`metrics::Registry`], served as text on
+//! series (gauges, counters, histograms) in a [`Registry`], served as text on
 //! `/metrics` by [`http::serve`], training curves written as CSV and drawn to PNG and SVG by
 //! [`curves`], grouped bar charts of results by [`bars`] (both through [`plot`], on plotters),
 //! and TensorBoard event files by [`tensorboard`]. It knows nothing about the model or the job
@@ -9,15 +9,16 @@
 
 pub mod bars;
 pub mod curves;
+mod exposition;
 pub mod histogram;
 pub mod http;
 pub mod logging;
-pub mod metrics;
+mod metrics;
 pub mod plot;
 pub mod tensorboard;
 pub mod training;
 
-pub use metrics::{Metric, Registry};
+pub use metrics::{Kind, Metric, Registry};
 
 /// What every binary's `--version` prints: the release and the git commit it was built from.
 pub const VERSION: &str = concat!(

@@ -52,3 +52,16 @@ pub fn init_logging(format: LogFormat) -> Result<(), LoggingError> {
     }
     .map_err(LoggingError)
 }
+
+/// `error` and every cause below it, joined with `: `, for log fields and messages that
+/// travel as one string.
+pub fn chain(error: &dyn std::error::Error) -> String {
+    let mut text = error.to_string();
+    let mut cause = error.source();
+    while let Some(next) = cause {
+        text.push_str(": ");
+        text.push_str(&next.to_string());
+        cause = next.source();
+    }
+    text
+}

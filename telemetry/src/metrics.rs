@@ -6,6 +6,7 @@ use std::collections::BTreeMap;
 use std::fmt::Write;
 use std::sync::{Mutex, PoisonError};
 
+use crate::exposition::format_value;
 use crate::histogram::Histogram;
 
 /// Whether a series can go down (gauge), only up (counter), or counts observations into
@@ -217,17 +218,6 @@ fn render_labels(labels: &[(&str, &str)]) -> String {
         })
         .collect();
     format!("{{{}}}", pairs.join(","))
-}
-
-/// A sample value or `le` bound as Prometheus writes it (`NaN`, `+Inf`, shortest decimal).
-pub(crate) fn format_value(value: f64) -> String {
-    if value.is_nan() {
-        "NaN".into()
-    } else if value.is_infinite() {
-        if value > 0.0 { "+Inf" } else { "-Inf" }.into()
-    } else {
-        format!("{value}")
-    }
 }
 
 #[cfg(test)]

@@ -5,7 +5,7 @@
 //!
 //! `cargo bench -p trainer-core --bench decode -- [--frames N] [--dir DIR [--size 256]]`.
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::Instant;
 
@@ -89,8 +89,38 @@ fn system_python() -> &'static str {
     }
 }
 
+/// Why the Python peer gave no frame rate.
+#[derive(Debug, thiserror::Error)]
+enum PeerError {
+    /// The interpreter could not be started.
+    #[error("cannot run {python}")]
+    Start {
+        /// The interpreter.
+        python: &'static str,
+        /// Why it did not start.
+        #[source]
+        source: std::io::Error,
+    },
+    /// The script ran and failed.
+    #[error("{python} {} failed (pillow and numpy installed?): {stderr}", script.display())]
+    Failed {
+        /// The interpreter.
+        python: &'static str,
+        /// The peer script.
+        script: PathBuf,
+        /// What it wrote on stderr.
+        stderr: String,
+    },
+    /// The script printed no `fps=` field.
+    #[error("unexpected peer output `{stdout}`")]
+    Output {
+        /// What it wrote on stdout.
+        stdout: String,
+    },
+}
+
 /// Frames per second of the Python peer on `dir`, or why it could not run.
-fn pil_peer(dir: &str, size: usize, rounds: usize) -> Result<f64, String> {
+fn pil_peer(dir: &str, size: usize, rounds: usize) -> Result<f64, PeerError> {
     let script = Path::new(env!("CARGO_MANIFEST_DIR")).join("benches/pil_decode.py");
     let python = system_python();
     let output = Command::new(python)
@@ -98,20 +128,22 @@ fn pil_peer(dir: &str, size: usize, rounds: usize) -> Result<f64, String> {
         .arg(dir)
         .args(["--size", &size.to_string(), "--rounds", &rounds.to_string()])
         .output()
-        .map_err(|e| format!("cannot run {python}: {e}"))?;
+        .map_err(|source| PeerError::Start { python, source })?;
     let stdout = String::from_utf8_lossy(&output.stdout);
     if !output.status.success() {
-        return Err(format!(
-            "{python} {} failed (pillow and numpy installed?): {}",
-            script.display(),
-            String::from_utf8_lossy(&output.stderr).trim()
-        ));
+        return Err(PeerError::Failed {
+            python,
+            script,
+            stderr: String::from_utf8_lossy(&output.stderr).trim().to_string(),
+        });
     }
     stdout
         .split_whitespace()
         .find_map(|field| field.strip_prefix("fps="))
         .and_then(|v| v.parse().ok())
-        .ok_or_else(|| format!("unexpected peer output `{}`", stdout.trim()))
+        .ok_or_else(|| PeerError::Output {
+            stdout: stdout.trim().to_string(),
+        })
 }
 
 /// Every frame file under `dir`, sub-folders included, each folder's in frame-number order.
@@ -152,8 +184,11 @@ fn directory_benchmark(dir: &str, size: usize, cores: usize) {
     let peer = pil_peer(dir, size, rounds);
     let (pil, ratio) = match &peer {
         Ok(fps) => (format!("{fps:.0}"), format!("{:.2}", per_core / fps)),
-        Err(reason) => {
-            eprintln!("PIL peer unavailable: {reason}");
+        Err(error) => {
+            let cause = std::error::Error::source(error)
+                .map(|cause| format!(": {cause}"))
+                .unwrap_or_default();
+            eprintln!("PIL peer unavailable: {error}{cause}");
             ("unavailable".to_string(), "unavailable".to_string())
         }
     };

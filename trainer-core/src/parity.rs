@@ -51,16 +51,33 @@ pub enum ParityError {
         source: serde_json::Error,
     },
     /// The fixture's configuration describes no model this crate can build.
-    #[error("fixture config {path}: {reason}")]
+    #[error("fixture config {path}")]
     Config {
         /// File at fault.
         path: PathBuf,
         /// What is wrong.
-        reason: String,
+        #[source]
+        source: FixtureConfigError,
     },
     /// Tensors are missing, misshapen or unreadable.
     #[error(transparent)]
     Tensors(#[from] FlaxError),
+}
+
+/// Why a fixture's configuration describes no model this crate can build.
+#[derive(Debug, thiserror::Error, PartialEq, Eq)]
+pub enum FixtureConfigError {
+    /// The model takes square images only.
+    #[error("images must be square, got {height}x{width}")]
+    NotSquare {
+        /// Image height of the fixture.
+        height: usize,
+        /// Image width of the fixture.
+        width: usize,
+    },
+    /// The model configuration breaks one of the model's constraints.
+    #[error(transparent)]
+    Model(#[from] ConfigError),
 }
 
 /// The configuration keys of a fixture JSON (other keys, such as `layout`, are ignored).
@@ -90,12 +107,12 @@ pub struct FixtureConfig {
 
 impl FixtureConfig {
     /// The model configuration this fixture was produced with.
-    pub fn model_config(&self) -> Result<XFactorConfig, String> {
+    pub fn model_config(&self) -> Result<XFactorConfig, FixtureConfigError> {
         if self.height != self.width {
-            return Err(format!(
-                "images must be square, got {}x{}",
-                self.height, self.width
-            ));
+            return Err(FixtureConfigError::NotSquare {
+                height: self.height,
+                width: self.width,
+            });
         }
         let config = XFactorConfig {
             image_size: self.height,
@@ -109,7 +126,7 @@ impl FixtureConfig {
             round_qkv_bf16: false,
             pose_conditioning: settings::model::PoseConditioning::Latent,
         };
-        config.validate().map_err(|e: ConfigError| e.to_string())?;
+        config.validate()?;
         Ok(config)
     }
 }
@@ -182,18 +199,15 @@ pub fn read_fixture_config(fixture: &Path) -> Result<FixtureConfig, ParityError>
 /// every call the fixture recorded plus the backward pass, and measures the differences.
 pub fn check_fixture(fixture: &Path, device: &Device) -> Result<ParityReport, ParityError> {
     let fixture_config = read_fixture_config(fixture)?;
-    let config = fixture_config
-        .model_config()
-        .map_err(|reason| ParityError::Config {
-            path: fixture.with_extension("json"),
-            reason,
-        })?;
+    let config_error = |source: FixtureConfigError| ParityError::Config {
+        path: fixture.with_extension("json"),
+        source,
+    };
+    let config = fixture_config.model_config().map_err(config_error)?;
     let tensors = FlaxTensors::read(fixture)?;
     let device = device.clone().autodiff();
-    let model = XFactor::new(&config, 0, &device).map_err(|e| ParityError::Config {
-        path: fixture.with_extension("json"),
-        reason: e.to_string(),
-    })?;
+    let model = XFactor::new(&config, 0, &device)
+        .map_err(|source| config_error(FixtureConfigError::Model(source)))?;
     let model = load_flax(model, &tensors, PARAMS_PREFIX)?;
 
     let input = |name: &str| tensors.require(&format!("input.{name}"));

@@ -12,7 +12,7 @@ use burn::optim::GradientsParams;
 use burn::tensor::Device;
 use serde::{Deserialize, Serialize};
 
-use data::{BatchSource, Samples};
+use data::{BatchSource, SampleError, Samples};
 use settings::XFactorConfig;
 use settings::train::{StageObjective, TrainConfig};
 
@@ -41,12 +41,13 @@ pub enum TrainError {
         micro: usize,
     },
     /// The batch source failed.
-    #[error("batch source, step {step}: {reason}")]
+    #[error("batch source, step {step}")]
     Source {
         /// Step being assembled.
         step: u64,
         /// What the source reported.
-        reason: String,
+        #[source]
+        source: SampleError,
     },
     /// The source returned samples of the other stage.
     #[error("batch source returned {found} samples for a {expected} objective")]
@@ -59,6 +60,9 @@ pub enum TrainError {
     /// A checkpoint file could not be written or read.
     #[error(transparent)]
     Checkpoint(#[from] CheckpointError),
+    /// The optimiser moments could not be written.
+    #[error(transparent)]
+    TensorFile(#[from] TensorFileError),
     /// Optimiser state is missing or misshapen.
     #[error("optimizer state: {0}")]
     OptimizerState(#[from] FlaxError),
@@ -69,6 +73,42 @@ pub enum TrainError {
         path: PathBuf,
         /// What went wrong.
         reason: String,
+    },
+}
+
+/// Why tensors could not be written to a safetensors file.
+#[derive(Debug, thiserror::Error)]
+pub enum TensorFileError {
+    /// A tensor's values do not fill its shape.
+    #[error("tensor `{name}` does not match its shape {shape:?}")]
+    Shape {
+        /// The tensor's name.
+        name: String,
+        /// Its shape.
+        shape: Vec<usize>,
+        /// What the safetensors library found.
+        #[source]
+        source: safetensors::SafeTensorError,
+    },
+    /// The file could not be written.
+    #[error("cannot write {}", path.display())]
+    Write {
+        /// The temporary file being written.
+        path: PathBuf,
+        /// What the safetensors library reported.
+        #[source]
+        source: safetensors::SafeTensorError,
+    },
+    /// The written file could not be renamed into place.
+    #[error("cannot rename {} to {}", from.display(), to.display())]
+    Rename {
+        /// The temporary file.
+        from: PathBuf,
+        /// Its final name.
+        to: PathBuf,
+        /// What the file system said.
+        #[source]
+        source: std::io::Error,
     },
 }
 
@@ -263,7 +303,7 @@ impl Trainer {
     ) -> Result<Vec<ObjectiveBatch>, TrainError> {
         let samples = source
             .samples(step, first, count)
-            .map_err(|reason| TrainError::Source { step, reason })?;
+            .map_err(|source| TrainError::Source { step, source })?;
         let shards = self.config.shards.clamp(1, count.max(1));
         let (seed, patch) = (self.config.seed, self.model_config.patch_size);
         let bounds = |shard: usize| (shard * count / shards, (shard + 1) * count / shards);
@@ -377,7 +417,7 @@ impl Trainer {
             &dir.join("model.safetensors"),
         )?;
         let moments = self.optimizer.export_moments(&self.model);
-        write_host_tensors(&dir.join("optimizer.safetensors"), &moments).map_err(state_error)?;
+        write_host_tensors(&dir.join("optimizer.safetensors"), &moments)?;
         let state = TrainerState {
             step: self.step,
             updates: self.optimizer.updates(),
@@ -463,11 +503,12 @@ impl Trainer {
     }
 }
 
-/// Writes float32 tensors to a safetensors file through a temporary name.
+/// Writes float32 tensors to a safetensors file through a temporary name, so a crash never
+/// leaves a truncated file under the final one.
 pub(crate) fn write_host_tensors(
     path: &Path,
     tensors: &[(String, crate::flax::HostTensor)],
-) -> Result<(), String> {
+) -> Result<(), TensorFileError> {
     let bytes: Vec<(String, Vec<u8>, Vec<usize>)> = tensors
         .iter()
         .map(|(name, host)| {
@@ -480,10 +521,23 @@ pub(crate) fn write_host_tensors(
         .map(|(name, data, shape)| {
             safetensors::tensor::TensorView::new(safetensors::Dtype::F32, shape.clone(), data)
                 .map(|view| (name.clone(), view))
-                .map_err(|e| e.to_string())
+                .map_err(|source| TensorFileError::Shape {
+                    name: name.clone(),
+                    shape: shape.clone(),
+                    source,
+                })
         })
-        .collect::<Result<Vec<_>, String>>()?;
+        .collect::<Result<Vec<_>, _>>()?;
     let temporary = path.with_extension("partial");
-    safetensors::serialize_to_file(views, None, &temporary).map_err(|e| e.to_string())?;
-    std::fs::rename(&temporary, path).map_err(|e| e.to_string())
+    safetensors::serialize_to_file(views, None, &temporary).map_err(|source| {
+        TensorFileError::Write {
+            path: temporary.clone(),
+            source,
+        }
+    })?;
+    std::fs::rename(&temporary, path).map_err(|source| TensorFileError::Rename {
+        from: temporary,
+        to: path.to_path_buf(),
+        source,
+    })
 }

@@ -7,7 +7,7 @@ use burn::optim::GradientsParams;
 use burn::tensor::{Device, Tensor};
 use data::Image;
 use data::rng::Stream;
-use data::{BatchSource, Samples};
+use data::{BatchSource, SampleError, Samples};
 use settings::objective::{Stage1Config, Stage2Config};
 use settings::optim::{AdamWConfig, Schedule};
 use settings::train::{StageObjective, TrainConfig};
@@ -26,7 +26,7 @@ struct SlidingCamera {
 }
 
 impl BatchSource for SlidingCamera {
-    fn samples(&self, step: u64, first: u64, count: usize) -> Result<Samples, String> {
+    fn samples(&self, step: u64, first: u64, count: usize) -> Result<Samples, SampleError> {
         let scene = |sample: u64| {
             let mut stream = Stream::new(&[step, sample]);
             let phases: Vec<f64> = (0..6).map(|_| stream.uniform_in(0.0, 6.0)).collect();

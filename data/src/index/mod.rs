@@ -29,6 +29,10 @@ use crate::store::{DataRoot, StoreError};
 
 mod erayzer;
 
+/// Folder under a dataset root that holds the cached manifests: it belongs to this crate, not
+/// to the dataset, so indexing never reads it as data.
+pub const CACHE_DIR: &str = ".xfactor";
+
 /// Sequences with fewer frames are dropped.
 pub const MIN_FRAMES: usize = 10;
 /// Share of each category's sequences (sorted) that trains, for MVImgNet and CO3Dv2.
@@ -156,7 +160,7 @@ pub async fn index(root: &DataRoot, dataset: DatasetKind) -> Result<Indexed, Ind
     let paths: Vec<&str> = listing
         .iter()
         .map(|l| l.path.as_str())
-        .filter(|p| !p.starts_with(super::cache::CACHE_DIR))
+        .filter(|p| !p.starts_with(CACHE_DIR))
         .collect();
     check_indexed(root, dataset, &paths, index_paths(dataset, &paths))
 }

@@ -18,7 +18,7 @@
 use std::array::from_fn;
 use std::f64::consts::{PI, TAU};
 
-use crate::batch::Image;
+use crate::frame::Image;
 use crate::rng::Stream;
 
 /// A point or direction in world or camera space.

@@ -3,6 +3,7 @@
 //! sigma 1.5, `K1 = 0.01`, `K2 = 0.03`, valid positions only, channels averaged).
 
 use data::Image;
+use serde::{Deserialize, Serialize};
 
 /// Side of the SSIM window.
 const SSIM_WINDOW: usize = 11;
@@ -14,6 +15,20 @@ const SSIM_C1: f64 = 0.01 * 0.01;
 const SSIM_C2: f64 = 0.03 * 0.03;
 /// PSNR reported for identical images, so reports stay finite JSON.
 pub const PSNR_CAP: f64 = 100.0;
+
+/// Autoencoding quality: targets rendered with poses read from the same video, averaged over
+/// the frames rendered.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct ReconstructionReport {
+    /// Frames rendered.
+    pub frames: usize,
+    /// Mean PSNR, dB.
+    pub psnr: f64,
+    /// Mean SSIM.
+    pub ssim: f64,
+    /// Mean LPIPS, when weights were given.
+    pub lpips: Option<f64>,
+}
 
 /// Why two images cannot be compared.
 #[derive(Debug, thiserror::Error, PartialEq, Eq)]

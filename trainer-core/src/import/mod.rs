@@ -21,7 +21,7 @@ use crate::checkpoint::{self, CheckpointError};
 use crate::flax::{FlaxError, FlaxTensors, HostTensor, PARAMS_PREFIX, load_flax};
 use crate::lpips::Lpips;
 use crate::model::XFactor;
-use crate::trainer::{TrainerState, write_host_tensors};
+use crate::trainer::{TensorFileError, TrainerState, write_host_tensors};
 use settings::Phase;
 use settings::commit::{CommitFile, CommitManifest, MANIFEST_NAME};
 use settings::model::{ConfigError, XFactorConfig};
@@ -115,7 +115,10 @@ pub enum ImportError {
     /// Writing the model checkpoint failed.
     #[error(transparent)]
     Checkpoint(#[from] CheckpointError),
-    /// Writing a tensor file or `state.json` failed.
+    /// Writing the optimiser moments or the LPIPS weights failed.
+    #[error(transparent)]
+    TensorFile(#[from] TensorFileError),
+    /// Writing `state.json` or `COMMIT.json` failed.
     #[error("cannot write {path}: {reason}")]
     Write {
         /// File at fault.
@@ -457,8 +460,7 @@ impl ImportedCheckpoint {
         })?;
         checkpoint::save(&model, &self.config, &out.join(MODEL_FILE))?;
         let write = |name: &str, tensors: &[(String, HostTensor)]| {
-            let path = out.join(name);
-            write_host_tensors(&path, tensors).map_err(|reason| ImportError::Write { path, reason })
+            write_host_tensors(&out.join(name), tensors)
         };
         write("optimizer.safetensors", &self.moments)?;
         if !self.lpips.is_empty() {
