@@ -39,7 +39,11 @@ fn usage(pid: u32) -> anyhow::Result<(f64, f64)> {
     // Fields after the command name (which may hold spaces) start at field 3.
     let after = stat.rsplit_once(')').map_or("", |(_, rest)| rest);
     let fields: Vec<&str> = after.split_whitespace().collect();
-    let ticks: f64 = fields[11].parse::<f64>()? + fields[12].parse::<f64>()?;
+    // utime and stime, fields 14 and 15 of the whole line.
+    let ticks: f64 = match fields.get(11..13) {
+        Some([user, system]) => user.parse::<f64>()? + system.parse::<f64>()?,
+        _ => bail!("/proc/{pid}/stat has no CPU times"),
+    };
     let status = std::fs::read_to_string(format!("/proc/{pid}/status"))?;
     let rss_kb: f64 = status
         .lines()
@@ -51,6 +55,8 @@ fn usage(pid: u32) -> anyhow::Result<(f64, f64)> {
     Ok((ticks / 100.0, rss_kb / 1024.0))
 }
 
+/// The bench job: generated data, a stage 1 of `steps` over a group of `workers`, and liveness
+/// limits no simulated worker can cross.
 fn yaml(port: u16, workers: usize, steps: u64, commit_every: u64, checkpoints: &Path) -> String {
     format!(
         "job: bookkeeping-bench
@@ -72,6 +78,7 @@ workers:
     )
 }
 
+/// A client of the coordinator on `port`, retrying for 30 s while it starts.
 async fn connect(port: u16) -> anyhow::Result<Client> {
     let endpoint = tonic::transport::Endpoint::from_shared(format!("http://127.0.0.1:{port}"))?;
     let deadline = Instant::now() + Duration::from_secs(30);
@@ -145,6 +152,7 @@ fn empty_commit(dir: &Path, step: u64) -> anyhow::Result<String> {
     Ok(location.display().to_string())
 }
 
+/// What the command line asks the bench to run.
 struct Options {
     workers: Vec<usize>,
     steps: u64,
@@ -152,6 +160,8 @@ struct Options {
     commit_every: u64,
 }
 
+/// Reads the command line over the defaults (a 2- and a 64-worker group, the paper's 100k
+/// steps, 10 windows, a commit every 2000 steps).
 fn options() -> anyhow::Result<Options> {
     let mut options = Options {
         workers: vec![2, 64],
@@ -183,11 +193,58 @@ fn options() -> anyhow::Result<Options> {
     Ok(options)
 }
 
+/// The coordinator's usage at one point of the run.
+struct Sample {
+    /// Steps every worker has reported.
+    step: u64,
+    /// CPU seconds (user + system) so far.
+    cpu_s: f64,
+    /// Resident megabytes.
+    rss_mb: f64,
+    /// When it was taken.
+    at: Instant,
+}
+
+impl Sample {
+    /// The coordinator `pid`'s usage now, after `step` steps.
+    fn take(pid: u32, step: u64) -> anyhow::Result<Self> {
+        let (cpu_s, rss_mb) = usage(pid)?;
+        Ok(Self {
+            step,
+            cpu_s,
+            rss_mb,
+            at: Instant::now(),
+        })
+    }
+}
+
+/// Runs one coordinator for a group of `workers` through `options.steps` steps; returns the
+/// line that compares its cost per report across the run.
 fn run(workers: usize, options: &Options) -> anyhow::Result<String> {
     let scratch = tempfile::tempdir()?;
     let port = coordinator::local::free_port()?;
-    let config = scratch.path().join("cluster.yaml");
-    let checkpoints = scratch.path().join("checkpoints");
+    let mut coordinator = start_coordinator(scratch.path(), port, workers, options)?;
+    let runtime = tokio::runtime::Builder::new_multi_thread()
+        .worker_threads(2)
+        .enable_all()
+        .build()?;
+    let commits = scratch.path().join("commits");
+    let driven = runtime.block_on(drive(port, coordinator.id(), workers, options, &commits));
+    let _ = coordinator.kill();
+    let _ = coordinator.wait();
+    Ok(summary(workers, options, &driven?))
+}
+
+/// Writes the bench job's YAML under `scratch` and starts `xfactor-coordinator` on it, quiet
+/// so its logging costs nothing the bench would measure.
+fn start_coordinator(
+    scratch: &Path,
+    port: u16,
+    workers: usize,
+    options: &Options,
+) -> anyhow::Result<Child> {
+    let config = scratch.join("cluster.yaml");
+    let checkpoints = scratch.join("checkpoints");
     std::fs::write(
         &config,
         yaml(
@@ -198,95 +255,113 @@ fn run(workers: usize, options: &Options) -> anyhow::Result<String> {
             &checkpoints,
         ),
     )?;
-    let mut coordinator: Child = Command::new(env!("CARGO_BIN_EXE_xfactor-coordinator"))
+    let child = Command::new(env!("CARGO_BIN_EXE_xfactor-coordinator"))
         .args(["run", "--config"])
         .arg(&config)
         .env("RUST_LOG", "warn")
         .stdout(Stdio::null())
         .stderr(Stdio::null())
         .spawn()?;
-    let pid = coordinator.id();
-    let runtime = tokio::runtime::Builder::new_multi_thread()
-        .worker_threads(2)
-        .enable_all()
-        .build()?;
-    let commits = scratch.path().join("commits");
-    let result = runtime.block_on(async {
-        let mut group = form_group(port, workers).await?;
-        let window = options.steps / options.samples;
-        let mut samples = vec![(0u64, usage(pid)?, Instant::now())];
-        for step in 0..options.steps {
-            let reports = group.iter_mut().map(|worker| {
-                let report = StepReport {
-                    worker_id: worker.id,
-                    session: worker.session.clone(),
-                    generation: worker.generation,
-                    phase: Phase::Stage1 as i32,
-                    step,
-                    loss: Some(LossTerms {
-                        total: 1.0 / (1.0 + step as f32),
-                        learning_rate: 4e-4,
-                        grad_norm: 0.5,
-                        applied: true,
-                        l1: 1.0 / (1.0 + step as f32),
-                        lpips: f32::NAN,
-                    }),
-                    parameter_checksum: 0xC0FFEE,
-                    checksum_computed: true,
-                    samples_per_s: 100.0,
-                    step_s: 0.5,
-                    allreduce_s: 0.1,
-                    ..StepReport::default()
-                };
-                worker.client.report_step(report)
-            });
-            for ack in futures::future::join_all(reports).await {
-                anyhow::ensure!(
-                    ack?.into_inner().generation_current,
-                    "generation ended at step {step}"
-                );
-            }
-            let done = step + 1;
-            if done % options.commit_every == 0 && done < options.steps {
-                let rank0 = &mut group[0];
-                let location = empty_commit(&commits, done)?;
-                let ack = rank0
-                    .client
-                    .commit_checkpoint(CheckpointCommit {
-                        worker_id: rank0.id,
-                        session: rank0.session.clone(),
-                        generation: rank0.generation,
-                        phase: Phase::Stage1 as i32,
-                        step: done,
-                        location,
-                    })
-                    .await?
-                    .into_inner();
-                anyhow::ensure!(ack.accepted, "commit refused: {}", ack.reason);
-            }
-            if done % window == 0 {
-                samples.push((done, usage(pid)?, Instant::now()));
-            }
+    Ok(child)
+}
+
+/// Forms the group and reports every step from every worker, rank 0 committing every
+/// `options.commit_every` steps; samples the coordinator `pid`'s usage at the start and after
+/// each of `options.samples` equal windows.
+async fn drive(
+    port: u16,
+    pid: u32,
+    workers: usize,
+    options: &Options,
+    commits: &Path,
+) -> anyhow::Result<Vec<Sample>> {
+    let mut group = form_group(port, workers).await?;
+    let window = options.steps / options.samples;
+    let mut samples = vec![Sample::take(pid, 0)?];
+    for step in 0..options.steps {
+        report_step(&mut group, step).await?;
+        let done = step + 1;
+        if done % options.commit_every == 0 && done < options.steps {
+            commit(&mut group[0], commits, done).await?;
         }
-        Ok::<_, anyhow::Error>(samples)
+        if done % window == 0 {
+            samples.push(Sample::take(pid, done)?);
+        }
+    }
+    Ok(samples)
+}
+
+/// Every worker reports `step` at once, as a training group does; fails when the coordinator
+/// says the generation ended.
+async fn report_step(group: &mut [Simulated], step: u64) -> anyhow::Result<()> {
+    let reports = group.iter_mut().map(|worker| {
+        let report = StepReport {
+            worker_id: worker.id,
+            session: worker.session.clone(),
+            generation: worker.generation,
+            phase: Phase::Stage1 as i32,
+            step,
+            loss: Some(LossTerms {
+                total: 1.0 / (1.0 + step as f32),
+                learning_rate: 4e-4,
+                grad_norm: 0.5,
+                applied: true,
+                l1: 1.0 / (1.0 + step as f32),
+                lpips: f32::NAN,
+            }),
+            parameter_checksum: 0xC0FFEE,
+            checksum_computed: true,
+            samples_per_s: 100.0,
+            step_s: 0.5,
+            allreduce_s: 0.1,
+            ..StepReport::default()
+        };
+        worker.client.report_step(report)
     });
-    let _ = coordinator.kill();
-    let _ = coordinator.wait();
-    let samples = result?;
+    for ack in futures::future::join_all(reports).await {
+        anyhow::ensure!(
+            ack?.into_inner().generation_current,
+            "generation ended at step {step}"
+        );
+    }
+    Ok(())
+}
+
+/// Rank 0 commits an empty checkpoint after `done` steps; fails when the coordinator refuses.
+async fn commit(rank0: &mut Simulated, commits: &Path, done: u64) -> anyhow::Result<()> {
+    let location = empty_commit(commits, done)?;
+    let ack = rank0
+        .client
+        .commit_checkpoint(CheckpointCommit {
+            worker_id: rank0.id,
+            session: rank0.session.clone(),
+            generation: rank0.generation,
+            phase: Phase::Stage1 as i32,
+            step: done,
+            location,
+        })
+        .await?
+        .into_inner();
+    anyhow::ensure!(ack.accepted, "commit refused: {}", ack.reason);
+    Ok(())
+}
+
+/// The bench's line: CPU microseconds per step report in the first, the last and every window
+/// and over the whole run, resident memory per window, and the steps per second.
+fn summary(workers: usize, options: &Options, samples: &[Sample]) -> String {
     let per_report = |i: usize| {
-        let (s0, (cpu0, _), _) = samples[i - 1];
-        let (s1, (cpu1, _), _) = samples[i];
-        1e6 * (cpu1 - cpu0) / ((s1 - s0) as f64 * workers as f64)
+        let (before, after) = (&samples[i - 1], &samples[i]);
+        1e6 * (after.cpu_s - before.cpu_s) / ((after.step - before.step) as f64 * workers as f64)
     };
     let last = samples.len() - 1;
-    let rss: Vec<f64> = samples.iter().map(|(_, (_, rss), _)| *rss).collect();
+    let rss: Vec<f64> = samples.iter().map(|sample| sample.rss_mb).collect();
     let windows: Vec<String> = (1..=last)
         .map(|i| format!("{:.0}", per_report(i)))
         .collect();
     let rss_windows: Vec<String> = rss[1..].iter().map(|mb| format!("{mb:.1}")).collect();
-    let wall = samples[last].2.duration_since(samples[0].2).as_secs_f64();
-    let cpu = (samples[last].1).0 - (samples[0].1).0;
-    Ok(format!(
+    let wall = samples[last].at.duration_since(samples[0].at).as_secs_f64();
+    let cpu = samples[last].cpu_s - samples[0].cpu_s;
+    format!(
         "workers={workers} steps={} reports={} commit_every={} samples={} cpu_us_per_report_first={:.1} cpu_us_per_report_last={:.1} cpu_us_per_report_all={:.1} rss_mb_first={:.1} rss_mb_last={:.1} rss_mb_max={:.1} cpu_us_per_report_by_window={} rss_mb_by_window={} steps_per_s={:.0} wall_s={wall:.1}",
         options.steps,
         options.steps * workers as u64,
@@ -301,7 +376,7 @@ fn run(workers: usize, options: &Options) -> anyhow::Result<String> {
         windows.join(","),
         rss_windows.join(","),
         options.steps as f64 / wall,
-    ))
+    )
 }
 
 fn main() -> anyhow::Result<()> {

@@ -2,16 +2,14 @@
 //! whether the job is running. The health service is served beside the Coordinator service but
 //! outside the job-token check (a probe has no token), and it answers only that status.
 
-use proto::v1::coordinator_server::CoordinatorServer;
-use tonic::server::NamedService;
 use tonic_health::ServingStatus;
 use tonic_health::pb::health_server::{Health, HealthServer};
 use tonic_health::server::HealthReporter;
 
-use crate::service::CoordinatorService;
-
-/// The service name probes may ask about besides the server as a whole (`""`).
-pub const COORDINATOR_SERVICE: &str = <CoordinatorServer<CoordinatorService> as NamedService>::NAME;
+/// The service name probes may ask about besides the server as a whole (`""`). It is the
+/// protocol's name for the Coordinator service, whichever type implements it, so health
+/// reporting needs nothing of the service module.
+pub const COORDINATOR_SERVICE: &str = proto::v1::coordinator_server::SERVICE_NAME;
 
 /// What the health service says about the job.
 #[derive(Clone)]
@@ -40,6 +38,7 @@ impl JobHealth {
         }
     }
 
+    /// Says `status` for the server as a whole and for the Coordinator service alike.
     async fn set(&self, status: ServingStatus) {
         for name in ["", COORDINATOR_SERVICE] {
             self.reporter.set_service_status(name, status).await;

@@ -8,9 +8,12 @@ use coordinator::local::free_port;
 use coordinator::plan::Plan;
 use coordinator::service::CoordinatorService;
 use proto::v1::coordinator_client::CoordinatorClient;
-use proto::v1::{CheckpointCommit, LeaveRequest, RegisterRequest, StatusRequest};
+use proto::v1::{CheckpointCommit, LeaveRequest, RegisterReply, RegisterRequest, StatusRequest};
 use tokio::sync::oneshot;
+use tonic::service::interceptor::InterceptedService;
+use tonic::transport::{Channel, Endpoint};
 
+/// A two-worker job on `port` whose checkpoints go to `checkpoints`.
 fn yaml(port: u16, checkpoints: &str) -> String {
     format!(
         "job: rpc-test
@@ -44,6 +47,24 @@ fn request(protocol: u32, model: Option<&serde_json::Value>) -> RegisterRequest 
     }
 }
 
+/// A client that attaches a job token to every request.
+type Client = CoordinatorClient<InterceptedService<Channel, proto::AttachToken>>;
+
+/// A client presenting `token` on `channel`.
+fn client_with(channel: Channel, token: &str) -> Client {
+    CoordinatorClient::with_interceptor(channel, proto::AttachToken::new(token).unwrap())
+}
+
+/// A channel to `endpoint`, retried until the coordinator listens.
+async fn connect(endpoint: Endpoint) -> Channel {
+    loop {
+        match endpoint.connect().await {
+            Ok(channel) => break channel,
+            Err(_) => tokio::time::sleep(Duration::from_millis(50)).await,
+        }
+    }
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn refusals_name_their_reason() {
     let dir = tempfile::tempdir().unwrap();
@@ -58,18 +79,33 @@ async fn refusals_name_their_reason() {
     let server = tokio::spawn(service.run("right-token", async {
         let _ = stopped.await;
     }));
-    let address = format!("http://127.0.0.1:{port}");
-    let channel = loop {
-        match tonic::transport::Endpoint::from_shared(address.clone())
-            .unwrap()
-            .connect()
-            .await
-        {
-            Ok(channel) => break channel,
-            Err(_) => tokio::time::sleep(Duration::from_millis(50)).await,
-        }
-    };
+    let endpoint = Endpoint::from_shared(format!("http://127.0.0.1:{port}")).unwrap();
+    let channel = connect(endpoint).await;
 
+    token_refusals(&channel).await;
+    let mut client = client_with(channel, "right-token");
+    registration_refusals(&mut client, &model).await;
+
+    let accepted = client
+        .register(request(proto::PROTOCOL_VERSION, Some(&model)))
+        .await
+        .unwrap()
+        .into_inner();
+    assert!(accepted.worker_id > 0);
+    assert_eq!(accepted.session.len(), 32, "128 random bits as hex");
+    let status = client.status(StatusRequest {}).await.unwrap().into_inner();
+    assert_eq!(status.job_name, "rpc-test");
+    assert_eq!(status.workers, 1);
+
+    forged_requests_refused(&mut client, &accepted).await;
+
+    stop.send(()).unwrap();
+    server.await.unwrap().unwrap();
+}
+
+/// A request without the job token, or with a guessed one, is refused as unauthenticated
+/// before any handler sees it.
+async fn token_refusals(channel: &Channel) {
     let mut anonymous = CoordinatorClient::new(channel.clone());
     let missing = anonymous.status(StatusRequest {}).await.unwrap_err();
     assert_eq!(missing.code(), tonic::Code::Unauthenticated);
@@ -78,21 +114,18 @@ async fn refusals_name_their_reason() {
         "{missing:?}"
     );
 
-    let mut wrong = CoordinatorClient::with_interceptor(
-        channel.clone(),
-        proto::AttachToken::new("guessed").unwrap(),
-    );
+    let mut wrong = client_with(channel.clone(), "guessed");
     let refused = wrong
         .register(request(proto::PROTOCOL_VERSION, None))
         .await
         .unwrap_err();
     assert_eq!(refused.code(), tonic::Code::Unauthenticated);
     assert!(refused.message().contains("wrong job token"));
+}
 
-    let mut client = CoordinatorClient::with_interceptor(
-        channel,
-        proto::AttachToken::new("right-token").unwrap(),
-    );
+/// A worker speaking another protocol version, or insisting on another model than the job's
+/// (`model`, as JSON), is refused naming the difference.
+async fn registration_refusals(client: &mut Client, model: &serde_json::Value) {
     let protocol = client
         .register(request(proto::PROTOCOL_VERSION + 1, None))
         .await
@@ -116,20 +149,11 @@ async fn refusals_name_their_reason() {
         differs.message().contains("width: job 32 vs worker 64"),
         "{differs:?}"
     );
+}
 
-    let accepted = client
-        .register(request(proto::PROTOCOL_VERSION, Some(&model)))
-        .await
-        .unwrap()
-        .into_inner();
-    assert!(accepted.worker_id > 0);
-    assert_eq!(accepted.session.len(), 32, "128 random bits as hex");
-    let status = client.status(StatusRequest {}).await.unwrap().into_inner();
-    assert_eq!(status.job_name, "rpc-test");
-    assert_eq!(status.workers, 1);
-
-    // A second registration holds the job token but not the first worker's session: it can
-    // neither make the first leave nor commit in its name.
+/// A second registration holds the job token but not the `accepted` worker's session: it can
+/// neither make the first leave nor commit in its name. It then leaves in its own name.
+async fn forged_requests_refused(client: &mut Client, accepted: &RegisterReply) {
     let intruder = client
         .register(request(proto::PROTOCOL_VERSION, None))
         .await
@@ -170,11 +194,9 @@ async fn refusals_name_their_reason() {
         })
         .await
         .unwrap();
-
-    stop.send(()).unwrap();
-    server.await.unwrap().unwrap();
 }
 
+/// The folder of the test CA, server certificate and keys.
 fn test_certificates() -> std::path::PathBuf {
     std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../proto/testdata/tls")
 }
@@ -208,36 +230,24 @@ async fn tls_round_trip_with_a_test_certificate() {
         let _ = stopped.await;
     }));
     let tls = proto::tls::client_config(&certificates.join("ca.pem"), "localhost").unwrap();
-    let endpoint = tonic::transport::Endpoint::from_shared(format!("https://127.0.0.1:{port}"))
+    let endpoint = Endpoint::from_shared(format!("https://127.0.0.1:{port}"))
         .unwrap()
         .tls_config(tls)
         .unwrap();
-    let channel = loop {
-        match endpoint.connect().await {
-            Ok(channel) => break channel,
-            Err(_) => tokio::time::sleep(Duration::from_millis(50)).await,
-        }
-    };
-    let mut client = CoordinatorClient::with_interceptor(
-        channel.clone(),
-        proto::AttachToken::new("right-token").unwrap(),
-    );
+    let channel = connect(endpoint).await;
+    let mut client = client_with(channel.clone(), "right-token");
     let status = client.status(StatusRequest {}).await.unwrap().into_inner();
     assert_eq!(status.job_name, "rpc-test");
-    let mut wrong =
-        CoordinatorClient::with_interceptor(channel, proto::AttachToken::new("guessed").unwrap());
+    let mut wrong = client_with(channel, "guessed");
     let refused = wrong.status(StatusRequest {}).await.unwrap_err();
     assert_eq!(refused.code(), tonic::Code::Unauthenticated);
 
-    let plain = tonic::transport::Endpoint::from_shared(format!("http://127.0.0.1:{port}"))
+    let plain = Endpoint::from_shared(format!("http://127.0.0.1:{port}"))
         .unwrap()
         .connect()
         .await;
     if let Ok(channel) = plain {
-        let mut client = CoordinatorClient::with_interceptor(
-            channel,
-            proto::AttachToken::new("right-token").unwrap(),
-        );
+        let mut client = client_with(channel, "right-token");
         assert!(
             client.status(StatusRequest {}).await.is_err(),
             "plain text reached a TLS coordinator"

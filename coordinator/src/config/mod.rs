@@ -12,23 +12,16 @@ use settings::objective::{ObjectiveSettings, ObjectiveVariant, Stage1Config, Sta
 use settings::optim::{AdamWConfig, Schedule};
 use settings::{Phase, XFactorConfig};
 
+mod checks;
 mod model;
 mod values;
 
+pub use checks::{AtLine, RuleViolation};
 pub use model::{ModelConfig, ModelPreset};
 
 pub use settings::DeviceChoice;
+use values::pinpoint;
 pub use values::{NonEmpty, NonNegative, Positive};
-use values::{locate, pinpoint};
-
-/// The longest duration any `*_s` key may hold: 30 days.
-const MAX_SECONDS: f64 = 30.0 * 24.0 * 3600.0;
-
-/// The most workers one job may expect.
-const MAX_WORKERS: u64 = 4096;
-
-/// The most steps one stage may have (the paper's stages have 100k and 200k).
-const MAX_STEPS: u64 = 100_000_000;
 
 /// Why a cluster YAML was refused.
 #[derive(Debug, thiserror::Error)]
@@ -49,6 +42,14 @@ pub enum ConfigError {
         path: String,
         /// The parser's message, with key path and position.
         message: String,
+    },
+    /// The file parsed but breaks a rule spanning several keys, or a bound.
+    #[error("{path}: {rule}")]
+    Rejected {
+        /// The file.
+        path: String,
+        /// The rule broken, naming the key and its line.
+        rule: RuleViolation,
     },
 }
 
@@ -401,166 +402,15 @@ impl ClusterConfig {
 
     /// Parses and checks YAML text; `label` names it in errors.
     pub fn from_yaml(text: &str, label: &str) -> Result<Self, ConfigError> {
-        let invalid = |message: String| ConfigError::Invalid {
+        let config: Self = serde_norway::from_str(text).map_err(|e| ConfigError::Invalid {
             path: label.to_string(),
-            message,
-        };
-        let config: Self =
-            serde_norway::from_str(text).map_err(|e| invalid(pinpoint(text, &e.to_string())))?;
-        config.check(text).map_err(invalid)?;
-        Ok(config)
-    }
-
-    /// Checks that span several keys; `text` gives their lines.
-    fn check(&self, text: &str) -> Result<(), String> {
-        let at =
-            |path: &[&str]| locate(text, path).map_or(String::new(), |l| format!(" at line {l}"));
-        self.model_config().map_err(|e| {
-            let key = self.model.key_at_fault(&e);
-            let line = locate(text, &["model", key])
-                .map_or_else(|| at(&["model"]), |l| format!(" at line {l}"));
-            let why = match e {
-                ModelError::CameraVector { .. } => " (an objective variant is se3_plucker)",
-                _ => "",
-            };
-            format!("model.{key}: {e}{why}{line}")
+            message: pinpoint(text, &e.to_string()),
         })?;
-        if self.stage2.objective.views < 3 {
-            // Two frames are a stage-1 pair: the data sources serve them as pairs, which the
-            // stage-2 objective cannot train on (the generation would fail again and again).
-            return Err(format!(
-                "stage2.objective.views: {} is fewer than 3 (stage 2 trains on a reference, at least one more context view and the target; two frames are stage 1's pairs){}",
-                self.stage2.objective.views,
-                at(&["stage2", "objective", "views"])
-            ));
-        }
-        if self.stage2.objective.variant.stage1_only() {
-            return Err(format!(
-                "stage2.objective.variant: {:?} adds a context view to stage 1's pairs; stage 2 has `views` context views already{}",
-                self.stage2.objective.variant,
-                at(&["stage2", "objective", "variant"])
-            ));
-        }
-        let batches = [
-            (
-                "stage1",
-                self.stage1.global_batch,
-                self.stage1.micro_batch,
-                self.stage1.objective.lpips_weight(),
-                self.stage1.lpips_weights.is_some(),
-            ),
-            (
-                "stage2",
-                self.stage2.global_batch,
-                self.stage2.micro_batch,
-                self.stage2.objective.lpips_weight(),
-                self.stage2.lpips_weights.is_some(),
-            ),
-        ];
-        for (stage, global, micro, lpips_weight, has_weights) in batches {
-            if global % micro != 0 {
-                return Err(format!(
-                    "{stage}.micro_batch: global_batch {global} must be a multiple of micro_batch {micro}{}",
-                    at(&[stage, "micro_batch"])
-                ));
-            }
-            if lpips_weight > 0.0 && !has_weights {
-                return Err(format!(
-                    "{stage}.lpips_weight is {lpips_weight} but {stage}.lpips_weights (a safetensors file from tools/convert_lpips_weights.py) is not given; set lpips_weight: 0 to train with L1 alone{}",
-                    at(&[stage])
-                ));
-            }
-        }
-        if let Some(spec) = &self.evaluate {
-            spec.validate()
-                .map_err(|e| format!("evaluate.{e}{}", at(&["evaluate"])))?;
-        }
-        if self.workers.minimum.0 > self.workers.expected.0 {
-            return Err(format!(
-                "workers.minimum ({}) exceeds workers.expected ({}){}",
-                self.workers.minimum.0,
-                self.workers.expected.0,
-                at(&["workers", "minimum"])
-            ));
-        }
-        self.check_bounds(&at)?;
-        if self.workers.heartbeat_timeout_s.0 <= self.workers.heartbeat_interval_s.0 {
-            return Err(format!(
-                "workers.heartbeat_timeout_s ({}) must exceed workers.heartbeat_interval_s ({})",
-                self.workers.heartbeat_timeout_s.0, self.workers.heartbeat_interval_s.0
-            ));
-        }
-        if let DataConfig::Generated(generated) = &self.data
-            && (generated.frames.0 as usize) < self.stage2.objective.views
-        {
-            return Err(format!(
-                "data.generated.frames ({}) is fewer than stage2.objective.views ({})",
-                generated.frames.0, self.stage2.objective.views
-            ));
-        }
-        if let DataConfig::Datasets(datasets) = &self.data {
-            if datasets.is_empty() {
-                return Err("data.datasets: expected at least one dataset".into());
-            }
-            for (i, a) in datasets.iter().enumerate() {
-                if datasets[..i].iter().any(|b| b.kind == a.kind) {
-                    return Err(format!(
-                        "data.datasets[{i}]: dataset kind `{}` appears twice",
-                        a.kind.name()
-                    ));
-                }
-            }
-        }
-        Ok(())
-    }
-
-    /// Durations and counts within what the job can act on: a timeout of `1e20` seconds does
-    /// not fit a clock, a billion workers do not fit a ring, and a global batch smaller than
-    /// the group would leave ranks without samples.
-    fn check_bounds(&self, at: &dyn Fn(&[&str]) -> String) -> Result<(), String> {
-        let workers = &self.workers;
-        let seconds = [
-            ("heartbeat_interval_s", workers.heartbeat_interval_s.0, 0.01),
-            ("heartbeat_timeout_s", workers.heartbeat_timeout_s.0, 0.1),
-            ("quorum_timeout_s", workers.quorum_timeout_s.0, 0.0),
-            ("regroup_grace_s", workers.regroup_grace_s.0, 0.0),
-            ("stall_timeout_s", workers.stall_timeout_s.0, 0.1),
-            ("exclusion_s", workers.exclusion_s.0, 0.0),
-        ];
-        for (key, value, least) in seconds {
-            if !(least..=MAX_SECONDS).contains(&value) {
-                return Err(format!(
-                    "workers.{key}: expected between {least} and {MAX_SECONDS} seconds (30 days), found {value}{}",
-                    at(&["workers", key])
-                ));
-            }
-        }
-        if workers.expected.0 > MAX_WORKERS {
-            return Err(format!(
-                "workers.expected: expected at most {MAX_WORKERS} workers, found {}{}",
-                workers.expected.0,
-                at(&["workers", "expected"])
-            ));
-        }
-        for (stage, steps, global) in [
-            ("stage1", self.stage1.steps, self.stage1.global_batch),
-            ("stage2", self.stage2.steps, self.stage2.global_batch),
-        ] {
-            if steps > MAX_STEPS {
-                return Err(format!(
-                    "{stage}.steps: expected at most {MAX_STEPS}, found {steps}{}",
-                    at(&[stage, "steps"])
-                ));
-            }
-            if global < workers.expected.0 {
-                return Err(format!(
-                    "{stage}.global_batch: {global} samples cannot be split across workers.expected = {} workers (each rank needs at least one){}",
-                    workers.expected.0,
-                    at(&[stage, "global_batch"])
-                ));
-            }
-        }
-        Ok(())
+        config.check(text).map_err(|rule| ConfigError::Rejected {
+            path: label.to_string(),
+            rule,
+        })?;
+        Ok(config)
     }
 
     /// The model configuration (already checked when the file was read). Render is

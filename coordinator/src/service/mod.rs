@@ -2,20 +2,15 @@
 //! The RPC handlers are in `rpc`, the checkpoint-store side (job state, commit verification)
 //! in `store`.
 
-use std::net::SocketAddr;
-use std::path::Path;
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
 use data::store::{DataRoot, ObjectVersion, StoreError};
-use proto::v1::coordinator_server::CoordinatorServer;
 use settings::Phase;
 use telemetry::Registry;
 use tokio::sync::{Mutex, Notify};
 use tokio_util::sync::CancellationToken;
-use tonic::service::interceptor::InterceptedService;
 
-use crate::health::JobHealth;
 use crate::job::{JobState, Report, StepRecord, Timing};
 use crate::metrics;
 use crate::plan::Plan;
@@ -23,6 +18,7 @@ use crate::plan::Plan;
 pub mod history;
 pub mod lease;
 mod rpc;
+mod serve;
 mod sessions;
 pub mod store;
 pub mod tensorboard;
@@ -297,104 +293,10 @@ impl CoordinatorService {
         token: &str,
         shutdown: impl std::future::Future<Output = ()> + Send + 'static,
     ) -> Result<Report, ServeError> {
-        let listen = self.state.lock().await.plan().config.listen.0.clone();
-        let address: SocketAddr = tokio::net::lookup_host(&listen)
-            .await
-            .ok()
-            .and_then(|mut a| a.next())
-            .ok_or_else(|| ServeError::Address(listen.clone()))?;
-        let server = InterceptedService::new(
-            CoordinatorServer::new(self.clone())
-                .max_decoding_message_size(proto::MAX_MESSAGE_BYTES)
-                .max_encoding_message_size(proto::MAX_MESSAGE_BYTES),
-            proto::RequireToken::new(token),
-        );
-        let tls = self.state.lock().await.plan().config.tls.clone();
-        let mut builder = tonic::transport::Server::builder();
-        if let Some(tls) = tls {
-            let failed = |source: Box<dyn std::error::Error + Send + Sync>| ServeError::Tls {
-                cert: tls.cert.0.clone(),
-                key: tls.key.0.clone(),
-                source,
-            };
-            let settings = proto::tls::server_config(Path::new(&tls.cert.0), Path::new(&tls.key.0))
-                .map_err(|e| failed(e.into()))?;
-            builder = builder.tls_config(settings).map_err(|e| failed(e.into()))?;
-        }
-        let finished = Arc::new(Notify::new());
-        let stop_server = finished.clone();
-        // Outside the token interceptor: probes carry no token.
-        let (health, health_server) = JobHealth::new().await;
-        let serve = tokio::spawn(
-            builder
-                .add_service(server)
-                .add_service(health_server)
-                .serve_with_shutdown(address, async move { stop_server.notified().await }),
-        );
-        tracing::info!(%address, "coordinator listening");
-        let recorders = Arc::new(Mutex::new(Recorders {
-            history: history::History::open(self.checkpoints.clone())
-                .await
-                .map_err(ServeError::OpenStore)?,
-            board: tensorboard::TensorBoard::new(self.checkpoints.clone()),
-        }));
-        {
-            let config = tensorboard::resolved_config(self.state.lock().await.plan());
-            let mut recorders = recorders.lock().await;
-            for stage in [Phase::Stage1, Phase::Stage2] {
-                recorders.board.record_config(stage, &config);
-            }
-        }
-        let ticker = {
-            let service = self.clone();
-            let health = health.clone();
-            let recorders = recorders.clone();
-            async move {
-                let mut phase = service.state.lock().await.phase();
-                let mut renewed = Instant::now();
-                loop {
-                    tokio::time::sleep(Duration::from_millis(50)).await;
-                    if renewed.elapsed() >= lease::RENEW_EVERY {
-                        match service.lease.renew().await {
-                            Ok(()) => renewed = Instant::now(),
-                            Err(lost @ lease::LeaseError::Lost { .. }) => return Some(lost),
-                            Err(error) => {
-                                tracing::warn!(error = %store::chain(&error), "lease not renewed; retrying");
-                            }
-                        }
-                    }
-                    let (changed, done, now_phase, records) = {
-                        let mut state = service.state.lock().await;
-                        let changed = state.tick(Instant::now());
-                        service.publish(&state);
-                        let done = state.finished();
-                        (changed, done, state.phase(), state.take_history(done))
-                    };
-                    service.append_history(&recorders, &records).await;
-                    if changed {
-                        service.changed.notify_waiters();
-                    }
-                    for stage in [Phase::Stage1, Phase::Stage2] {
-                        if phase <= stage && stage < now_phase {
-                            service.write_curves(stage).await;
-                        }
-                    }
-                    phase = phase.max(now_phase);
-                    if done {
-                        service.record_evaluation(&recorders).await;
-                        health.job_ending().await;
-                        // Let every worker collect its FINISH before the server goes.
-                        tokio::time::sleep(Duration::from_secs_f64(
-                            (service.heartbeat_interval_s * 4.0).max(1.0),
-                        ))
-                        .await;
-                        return None;
-                    }
-                }
-            }
-        };
+        let server = self.start_server(token).await?;
+        let recorders = self.open_recorders().await?;
         let fenced = tokio::select! {
-            lost = ticker => lost,
+            lost = self.tick_until_done(&server.health, &recorders) => lost,
             () = shutdown => {
                 tracing::warn!("shutdown requested: the job stops; rerun to resume from its last commit");
                 None
@@ -404,23 +306,6 @@ impl CoordinatorService {
                 None
             }
         };
-        self.stopping.cancel();
-        let records = self.state.lock().await.take_history(true);
-        self.append_history(&recorders, &records).await;
-        self.record_failure().await;
-        health.job_ending().await;
-        health.close().await;
-        finished.notify_one();
-        serve
-            .await
-            .map_err(ServeError::Task)?
-            .map_err(ServeError::Transport)?;
-        if let Some(lost) = fenced {
-            tracing::error!(error = %lost, "another coordinator took this job over");
-            return Err(ServeError::Lease(lost));
-        }
-        self.lease.release().await;
-        let report = self.state.lock().await.report();
-        Ok(report)
+        self.stop(server, &recorders, fenced).await
     }
 }

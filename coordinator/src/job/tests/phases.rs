@@ -1,0 +1,157 @@
+//! A job's phases in order: forming the first group, commits within and at the end of each
+//! stage, the evaluation, refused commits, and resuming from a saved state or released weights.
+
+use super::*;
+
+#[test]
+fn a_job_goes_through_stage1_stage2_evaluation_and_finishes() {
+    let mut run = Run::new(true, None);
+    assert_eq!(run.state.phase(), Phase::Stage1);
+    let first = run.assign(0);
+    let generation = first[0].as_ref().unwrap().generation;
+    assert_eq!(generation, BASE + 1);
+    let (rank0, rank1) = (train(&first[0]), train(&first[1]));
+    assert_eq!((rank0.rank, rank1.rank, rank0.world_size), (0, 1, 2));
+    assert_eq!(rank0.phase, proto::v1::Phase::Stage1 as i32);
+    assert!(rank0.resume_from.is_empty() && rank0.init_weights_from.is_empty());
+    assert_eq!(rank0.checkpoint_prefix, "/tmp/unit-ckpt/stage1");
+    assert_eq!(rank0.total_steps, 4);
+    assert!(rank0.model.is_some() && rank0.train.is_some() && rank0.data.is_some());
+
+    let w0 = run.workers[0];
+    assert!(run.step(w0, Phase::Stage1, 0, generation));
+    assert!(!run.commit(w0, Phase::Stage1, 2, generation), "mid-stage");
+    assert_eq!(run.state.phase(), Phase::Stage1);
+    assert!(run.commit(w0, Phase::Stage1, 4, generation), "stage 1 ends");
+    assert_eq!(run.state.phase(), Phase::Stage2);
+    assert_eq!(
+        run.state.durable().stage1_final.as_deref(),
+        Some("mem://stage1/4")
+    );
+    assert_eq!(run.state.durable().last_commit, None);
+
+    let second = run.assign(generation);
+    let stage2 = train(&second[0]);
+    assert_eq!(stage2.phase, proto::v1::Phase::Stage2 as i32);
+    assert_eq!(stage2.init_weights_from, "mem://stage1/4");
+    let generation = second[0].as_ref().unwrap().generation;
+    assert!(run.commit(w0, Phase::Stage2, 2, generation), "stage 2 ends");
+    assert_eq!(run.state.phase(), Phase::Evaluate);
+
+    let third = run.assign(generation);
+    let evaluated: Vec<_> = third.iter().filter(|a| a.is_some()).collect();
+    assert_eq!(evaluated.len(), 1, "one worker evaluates");
+    let evaluate = evaluation(evaluated[0]);
+    assert_eq!(evaluate.weights, "mem://stage2/2");
+    assert_eq!(evaluate.report_prefix, "/tmp/unit-ckpt/evaluation");
+    let generation = evaluated[0].as_ref().unwrap().generation;
+    let evaluator = run.workers[third.iter().position(|a| a.is_some()).unwrap()];
+    assert!(run.commit(evaluator, Phase::Evaluate, 1, generation));
+    assert!(run.state.finished());
+    assert_eq!(run.state.report().outcome, "finished");
+    assert_eq!(
+        run.state.report().evaluation.as_deref(),
+        Some("mem://evaluate/1")
+    );
+
+    let last = run.assign(generation);
+    assert!(matches!(
+        last[0].as_ref().and_then(|a| a.work.as_ref()),
+        Some(Work::Finish(_))
+    ));
+}
+
+#[test]
+fn without_an_evaluation_stage_2_ends_the_job() {
+    let mut run = Run::new(false, None);
+    let generation = run.assign(0)[0].as_ref().unwrap().generation;
+    let w0 = run.workers[0];
+    run.commit(w0, Phase::Stage1, 4, generation);
+    let generation = run.assign(generation)[0].as_ref().unwrap().generation;
+    assert!(run.commit(w0, Phase::Stage2, 2, generation));
+    assert_eq!(run.state.phase(), Phase::Finished);
+}
+
+#[test]
+fn stale_foreign_and_wrong_phase_commits_are_refused() {
+    let mut run = Run::new(false, None);
+    let generation = run.assign(0)[0].as_ref().unwrap().generation;
+    let w0 = run.workers[0];
+    let commit = |phase| Commit {
+        phase,
+        step: 2,
+        location: "mem://x".into(),
+    };
+    assert_eq!(
+        run.state.commit(w0, commit(Phase::Stage1), generation - 1),
+        Err(Refusal::StaleGeneration(generation - 1))
+    );
+    assert_eq!(
+        run.state.commit(999, commit(Phase::Stage1), generation),
+        Err(Refusal::NotInGroup(999))
+    );
+    assert_eq!(
+        run.state.commit(w0, commit(Phase::Stage2), generation),
+        Err(Refusal::WrongPhase {
+            commit: Phase::Stage2,
+            job: Phase::Stage1
+        })
+    );
+    assert_eq!(
+        run.state.request_assignment(999, 0, run.now),
+        Err(Refusal::UnknownWorker(999))
+    );
+    assert!(run.state.report().commits.is_empty());
+}
+
+#[test]
+fn a_saved_state_resumes_where_it_was_and_an_old_evaluation_state_counts_as_finished() {
+    let mut saved = Durable::new("unit".into());
+    saved.phase = Phase::Stage2;
+    saved.stage1_final = Some("mem://stage1/4".into());
+    saved.last_commit = Some(Commit {
+        phase: Phase::Stage2,
+        step: 1,
+        location: "mem://stage2/1".into(),
+    });
+    let mut run = Run::new(false, Some(saved));
+    let resumed = run.assign(0);
+    let stage2 = train(&resumed[0]);
+    assert_eq!(stage2.resume_from, "mem://stage2/1");
+    assert!(stage2.init_weights_from.is_empty());
+
+    let old: Durable = serde_json::from_str(
+        r#"{"job": "unit", "stage": 3, "last_commit": null, "stage1_final": "a"}"#,
+    )
+    .unwrap();
+    assert_eq!(old.phase, Phase::Evaluate);
+    let run = Run::new(true, Some(old));
+    assert!(run.state.finished(), "no stage 2 result to evaluate");
+}
+
+#[test]
+fn init_weights_start_stage1_and_only_until_its_first_commit() {
+    let mut run = Run::of(plan_with("init_weights: s3://released/xfactor-2v\n"), None);
+    let first = run.assign(0);
+    let generation = first[0].as_ref().unwrap().generation;
+    for assignment in &first {
+        let stage1 = train(assignment);
+        assert_eq!(stage1.init_weights_from, "s3://released/xfactor-2v");
+        assert!(stage1.resume_from.is_empty());
+    }
+    let w0 = run.workers[0];
+    assert!(!run.commit(w0, Phase::Stage1, 2, generation));
+    assert!(run.state.leave(run.workers[1], "stopping"));
+    run.workers = vec![w0];
+    assert!(run.assign(generation)[0].is_none(), "the grace period runs");
+    run.now += Duration::from_secs(2);
+    let regrouped = run.assign(generation);
+    let resumed = train(&regrouped[0]);
+    assert_eq!(resumed.resume_from, "mem://stage1/2");
+    assert!(resumed.init_weights_from.is_empty(), "a commit wins");
+    let generation = regrouped[0].as_ref().unwrap().generation;
+    assert!(run.commit(w0, Phase::Stage1, 4, generation));
+    let next = run.assign(generation);
+    let stage2 = train(&next[0]);
+    assert_eq!(stage2.init_weights_from, "mem://stage1/4");
+}
