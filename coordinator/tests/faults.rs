@@ -10,7 +10,8 @@ mod common;
 use std::time::{Duration, Instant};
 
 use common::{
-    Running, commits, last_committed, signal, small_job, wait_exit, wait_for_first_commit, walk,
+    Running, commits, job_whose_stage1_store_refuses_writes, last_committed, signal, small_job,
+    wait_exit, wait_for_first_commit, walk,
 };
 use coordinator::local::{LocalJob, free_port};
 
@@ -202,30 +203,6 @@ fn a_second_coordinator_on_the_same_checkpoint_uri_is_refused() {
     );
 }
 
-/// Waits until the coordinator's log shows `text`.
-fn wait_for_log(running: &Running, text: &str, limit: Duration) {
-    wait_for_log_count(running, text, 1, limit);
-}
-
-/// Waits until the coordinator's log shows `text` `count` times.
-fn wait_for_log_count(running: &Running, text: &str, count: usize, limit: Duration) {
-    let log = running.job.dir.join("coordinator.log");
-    let deadline = Instant::now() + limit;
-    while std::fs::read_to_string(&log)
-        .unwrap_or_default()
-        .matches(text)
-        .count()
-        < count
-    {
-        assert!(
-            Instant::now() < deadline,
-            "never logged `{text}`\n{}",
-            running.logs()
-        );
-        std::thread::sleep(Duration::from_millis(20));
-    }
-}
-
 #[test]
 fn rank_0_killed_before_the_first_commit_and_the_survivor_starts_the_stage_again() {
     let dir = tempfile::tempdir().unwrap();
@@ -233,7 +210,7 @@ fn rank_0_killed_before_the_first_commit_and_the_survivor_starts_the_stage_again
     job.stage1_steps = 20;
     job.checkpoint_every = 10;
     let mut running = Running::start(job);
-    wait_for_log(&running, "group formed", Duration::from_secs(120));
+    running.wait_for_log("group formed", 1, Duration::from_secs(120));
     let killed = Instant::now();
     running.workers[0].kill().unwrap();
     let report = running.finish(Duration::from_secs(300));
@@ -262,13 +239,13 @@ fn a_late_joiner_enters_at_the_next_commit() {
     running.workers[1].kill().unwrap();
     let _ = running.workers[1].wait();
     // The survivor trains alone first; only then does the replacement come.
-    wait_for_log_count(&running, "group formed", 2, Duration::from_secs(60));
+    running.wait_for_log("group formed", 2, Duration::from_secs(60));
     let replacement = running.job.spawn_worker(&common::binaries(), 1).unwrap();
     running.workers[1] = replacement;
     let joined = Instant::now();
-    wait_for_log(
-        &running,
+    running.wait_for_log(
         "the group re-forms at this commit",
+        1,
         Duration::from_secs(120),
     );
     let entered = joined.elapsed().as_secs_f64();
@@ -314,18 +291,9 @@ fn a_corrupt_job_json_stops_the_start_and_is_left_as_it_is() {
 #[test]
 fn a_final_commit_the_store_refuses_is_retried_and_the_job_finishes_once_the_store_is_fixed() {
     let dir = tempfile::tempdir().unwrap();
-    let mut job = small_job(dir.path(), 2);
-    // The stage's only commit is its final one.
-    job.stage1_steps = 2;
-    job.checkpoint_every = 2;
-    let runtime = tokio::runtime::Runtime::new().unwrap();
-    runtime.block_on(job.prepare()).unwrap();
-    // A file where the stage's checkpoints go: every upload under it fails.
-    let blocker = job.checkpoint_dir().join("stage1");
-    std::fs::create_dir_all(job.checkpoint_dir()).unwrap();
-    std::fs::write(&blocker, b"not a directory").unwrap();
+    let (job, blocker) = job_whose_stage1_store_refuses_writes(dir.path());
     let running = Running::start(job);
-    wait_for_log(&running, "generation failed", Duration::from_secs(240));
+    running.wait_for_log("generation failed", 1, Duration::from_secs(240));
     let failed = Instant::now();
     std::fs::remove_file(&blocker).unwrap();
     let report = running.finish(Duration::from_secs(300));
@@ -350,9 +318,42 @@ fn a_worker_stuck_in_a_data_read_while_its_heartbeats_go_on_is_removed_and_the_j
     job.worker_metrics_ports = vec![free_port().unwrap(), free_port().unwrap()];
     let running = Running::start(job);
     wait_for_first_commit(&running);
-    // One sequence's frames become FIFOs: whoever opens one next blocks in the read, while its
-    // heartbeat task keeps answering.
-    let frames: Vec<_> = walk(&dir.path().join("data"))
+    let fifos = block_one_sequence(&dir.path().join("data"));
+    let blocked = Instant::now();
+    let removal = "worker removed: no progress in its step";
+    running.wait_for_log(removal, 1, Duration::from_secs(120));
+    let removed_after = blocked.elapsed().as_secs_f64();
+    let log = std::fs::read_to_string(dir.path().join("coordinator.log")).unwrap();
+    let stuck = worker_named_after(&log, removal);
+    // The stuck worker's /healthz turns 503 within a heartbeat or two of its removal, so a
+    // liveness probe would restart it.
+    let index: usize = stuck.trim_start_matches("local-").parse().unwrap();
+    let (status, reason) = healthz_until_unhealthy(
+        running.job.worker_metrics_ports[index],
+        Duration::from_secs(10),
+    );
+    assert_eq!(status, 503, "{reason}");
+    assert!(reason.contains("removed"), "{reason}");
+    restore_frames(fifos);
+    let report = running.finish(Duration::from_secs(300));
+    println!(
+        "fault=worker_stuck_in_read removed_after_s={removed_after:.1} finished_after_s={:.1} restarts={} stuck={stuck}",
+        blocked.elapsed().as_secs_f64(),
+        report["restarts"]
+    );
+    assert_eq!(report["outcome"], "finished", "{report:#}");
+    assert!(report["restarts"].as_u64().unwrap() >= 1, "{report:#}");
+    assert!(
+        report["exclusions"].to_string().contains(&stuck),
+        "{report:#}"
+    );
+    assert_eq!(commits(&report, 1).last().unwrap().0, 400, "{report:#}");
+}
+
+/// Turns the frames of one sequence under `data` into FIFOs: whoever opens one next blocks in
+/// the read, while its heartbeat task keeps answering. Returns each frame with its bytes.
+fn block_one_sequence(data: &std::path::Path) -> Vec<(std::path::PathBuf, Vec<u8>)> {
+    let frames: Vec<_> = walk(data)
         .into_iter()
         .filter(|p| p.extension().is_some_and(|e| e == "png" || e == "jpg"))
         .collect();
@@ -371,26 +372,26 @@ fn a_worker_stuck_in_a_data_read_while_its_heartbeats_go_on_is_removed_and_the_j
         assert!(made.success(), "mkfifo {}", frame.display());
         fifos.push((frame.clone(), bytes));
     }
-    let blocked = Instant::now();
-    let removal = "worker removed: no progress in its step";
-    wait_for_log(&running, removal, Duration::from_secs(120));
-    let removed_after = blocked.elapsed().as_secs_f64();
-    let log = std::fs::read_to_string(dir.path().join("coordinator.log")).unwrap();
-    let stuck = log
-        .split(removal)
+    fifos
+}
+
+/// The `name=` of the worker the first `event` line of the coordinator's `log` names.
+fn worker_named_after(log: &str, event: &str) -> String {
+    log.split(event)
         .nth(1)
         .and_then(|rest| rest.split("name=").nth(1))
         .and_then(|rest| rest.split_whitespace().next())
         .unwrap()
-        .to_string();
-    // The stuck worker's /healthz turns 503 within a heartbeat or two of its removal, so a
-    // liveness probe would restart it.
-    let index: usize = stuck.trim_start_matches("local-").parse().unwrap();
-    let health =
-        std::net::SocketAddr::from(([127, 0, 0, 1], running.job.worker_metrics_ports[index]));
+        .to_string()
+}
+
+/// Polls `/healthz` on the loopback `port` until it answers 503 or `limit` passes; returns the
+/// last answer's status and body.
+fn healthz_until_unhealthy(port: u16, limit: Duration) -> (u16, String) {
+    let health = std::net::SocketAddr::from(([127, 0, 0, 1], port));
     let runtime = tokio::runtime::Runtime::new().unwrap();
-    let deadline = Instant::now() + Duration::from_secs(10);
-    let (status, reason) = loop {
+    let deadline = Instant::now() + limit;
+    loop {
         let answer = runtime
             .block_on(telemetry::http::get(health, "/healthz"))
             .unwrap();
@@ -398,10 +399,12 @@ fn a_worker_stuck_in_a_data_read_while_its_heartbeats_go_on_is_removed_and_the_j
             break answer;
         }
         std::thread::sleep(Duration::from_millis(50));
-    };
-    assert_eq!(status, 503, "{reason}");
-    assert!(reason.contains("removed"), "{reason}");
-    // The frames come back for the survivor; a reader still blocked in a FIFO gets its bytes.
+    }
+}
+
+/// The frames come back as plain files for the survivor; a reader still blocked in a FIFO
+/// gets its bytes through the pipe.
+fn restore_frames(fifos: Vec<(std::path::PathBuf, Vec<u8>)>) {
     for (frame, bytes) in fifos {
         let pipe = std::fs::OpenOptions::new()
             .read(true)
@@ -416,17 +419,4 @@ fn a_worker_stuck_in_a_data_read_while_its_heartbeats_go_on_is_removed_and_the_j
             let _ = std::io::Write::write_all(&mut pipe, &bytes);
         });
     }
-    let report = running.finish(Duration::from_secs(300));
-    println!(
-        "fault=worker_stuck_in_read removed_after_s={removed_after:.1} finished_after_s={:.1} restarts={} stuck={stuck}",
-        blocked.elapsed().as_secs_f64(),
-        report["restarts"]
-    );
-    assert_eq!(report["outcome"], "finished", "{report:#}");
-    assert!(report["restarts"].as_u64().unwrap() >= 1, "{report:#}");
-    assert!(
-        report["exclusions"].to_string().contains(&stuck),
-        "{report:#}"
-    );
-    assert_eq!(commits(&report, 1).last().unwrap().0, 400, "{report:#}");
 }

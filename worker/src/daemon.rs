@@ -1,118 +1,26 @@
 //! The worker's life: register, await an assignment, do it (train one rank of a group, or
-//! evaluate), and go back for the next, until the coordinator says the job is done. The parts
-//! live beside this file: `session` (coordinator RPCs and heartbeats), `shutdown` (signals),
-//! `training` (one generation's steps), `evaluate`, `checkpoints` (upload and commit).
+//! evaluate), and go back for the next, until the coordinator says the job is done. The layers
+//! it drives live beside this file: `session` (coordinator RPCs and heartbeats), `training`
+//! and `evaluate` (one generation's work), `failure` (whose fault a failed generation was),
+//! `shutdown` (signals).
 
 use std::net::SocketAddr;
-use std::path::PathBuf;
 use std::sync::Arc;
 use std::sync::atomic::Ordering;
-use std::time::Duration;
 
 use anyhow::{Context, bail};
-use proto::v1::GenerationFailure;
-use proto::v1::assignment::Work;
-use settings::{DeviceChoice, XFactorConfig};
-use tokio_util::sync::CancellationToken;
+use settings::work::{Assignment, GenerationFailure, Work};
+use tokio::runtime::Runtime;
 
-use crate::checkpoints::CorruptCheckpoint;
-use crate::collective::{CollectiveError, CollectiveService, Link, Mailbox, PeerTls, spawn_server};
-use crate::session::{Progress, await_assignment, connect, heartbeats, leave, register};
-use crate::{evaluate, metrics, shutdown, training};
+use crate::collective::{CollectiveService, Link, spawn_server};
+use crate::context::{Ending, WorkerContext};
+use crate::options::{WorkerOptions, WorkerTls};
+use crate::progress::Progress;
+use crate::session::{AwaitError, Client, await_assignment, connect, heartbeats, leave, register};
+use crate::{evaluate, failure, health, metrics, shutdown, training};
 
 /// Consecutive generations that may fail before the worker gives up.
 const MAX_CONSECUTIVE_FAILURES: u32 = 8;
-
-/// How a worker is started.
-#[derive(Debug, Clone)]
-pub struct WorkerOptions {
-    /// Coordinator URL, `http://host:port`.
-    pub coordinator: String,
-    /// The job token.
-    pub token: String,
-    /// Where the Collective service binds (`127.0.0.1:0` picks a free port).
-    pub listen: String,
-    /// Address peers should use, when it differs from the bound one (NAT, `0.0.0.0`).
-    pub advertise: Option<String>,
-    /// The device to train on; `None` follows the job.
-    pub device: Option<DeviceChoice>,
-    /// Threads per micro-batch; `None` follows the job (0 there: every core).
-    pub threads: Option<usize>,
-    /// Name in logs.
-    pub name: String,
-    /// When set: the model config this worker insists on.
-    pub expected_model_config: Option<XFactorConfig>,
-    /// Longest wait for a peer's chunk.
-    pub collective_timeout: Duration,
-    /// Scratch space for checkpoints on their way to and from the store.
-    pub scratch: PathBuf,
-    /// `host:port` for Prometheus `/metrics`; `None`: no endpoint.
-    pub metrics_address: Option<String>,
-    /// TLS towards the coordinator and between ranks; `None`: plain HTTP/2.
-    pub tls: Option<WorkerTls>,
-    /// Fault drill: from this step on, perturb this replica's all-reduced gradients (a
-    /// silently faulty accelerator) so the job's divergence handling can be exercised.
-    pub drill_diverge_from_step: Option<u64>,
-}
-
-/// A worker's TLS files. With `identity`, its Collective service runs TLS too and peers are
-/// dialled over TLS (every worker of a job must then have one).
-#[derive(Debug, Clone)]
-pub struct WorkerTls {
-    /// CA that signed the coordinator's (and peers') certificates.
-    pub ca: PathBuf,
-    /// Name the certificates must carry; `None`: the host of the address dialled.
-    pub domain: Option<String>,
-    /// This worker's certificate and key, for its Collective service.
-    pub identity: Option<(PathBuf, PathBuf)>,
-}
-
-impl WorkerTls {
-    pub(crate) fn client(&self, host: &str) -> anyhow::Result<tonic::transport::ClientTlsConfig> {
-        let domain = self.domain.as_deref().unwrap_or(host);
-        Ok(proto::tls::client_config(&self.ca, domain)?)
-    }
-
-    fn peers(&self) -> anyhow::Result<Option<PeerTls>> {
-        let Some((cert, key)) = &self.identity else {
-            return Ok(None);
-        };
-        let server = proto::tls::server_config(cert, key)?;
-        proto::tls::client_config(&self.ca, self.domain.as_deref().unwrap_or("localhost"))?;
-        Ok(Some(PeerTls {
-            server,
-            ca: self.ca.clone(),
-            domain: self.domain.clone(),
-        }))
-    }
-}
-
-/// How a generation ended for this worker.
-pub enum Ending {
-    /// The stage (or this generation's part of it) is done.
-    Done,
-    /// SIGTERM arrived; the last step finished cleanly and nothing is half-committed.
-    Stopping,
-    /// The coordinator suspends the job: this worker's part is committed (rank 0) or needs
-    /// nothing more (the others); it exits without leaving, so the generation stays whole
-    /// until the commit is in.
-    Suspended,
-}
-
-/// What every generation of this worker shares.
-#[derive(Clone, Copy)]
-pub struct Group<'a> {
-    /// How the worker was started.
-    pub options: &'a WorkerOptions,
-    /// How to reach peers.
-    pub link: &'a Link,
-    /// Chunks from the left neighbour.
-    pub mailbox: &'a Mailbox,
-    /// Shared with the heartbeat task.
-    pub progress: &'a Progress,
-    /// Cancelled on SIGTERM.
-    pub shutdown: &'a CancellationToken,
-}
 
 /// Runs the worker until the job finishes. Blocking; owns its async runtime.
 pub fn run(options: WorkerOptions) -> anyhow::Result<()> {
@@ -134,7 +42,8 @@ pub fn run(options: WorkerOptions) -> anyhow::Result<()> {
     };
     let collective = CollectiveService::default();
     let mailbox = collective.mailbox();
-    let (address, health) = runtime.block_on(serve_collective(&options, collective, &link))?;
+    let (address, health_reporter) =
+        runtime.block_on(serve_collective(&options, collective, &link))?;
     let mut client = runtime.block_on(connect(
         &options.coordinator,
         &options.token,
@@ -151,114 +60,139 @@ pub fn run(options: WorkerOptions) -> anyhow::Result<()> {
     let shutdown = shutdown::on_signals(&runtime);
     let interval = runtime.block_on(register(&mut client, &options, &address, &progress))?;
     runtime.spawn(heartbeats(client.clone(), progress.clone(), interval));
-    runtime.spawn(crate::health::mirror_membership(
-        health,
+    runtime.spawn(health::mirror_membership(
+        health_reporter,
         progress.clone(),
         interval,
     ));
-    let mut after = 0;
-    let mut failures = 0;
-    let mut failure: Option<GenerationFailure> = None;
-    loop {
-        let waited = runtime.block_on(async {
-            tokio::select! {
-                assignment = await_assignment(&mut client, &progress, after, failure.as_ref()) => Some(assignment),
-                () = shutdown.cancelled() => None,
-            }
-        });
-        let Some(waited) = waited else {
-            return leave(&runtime, &mut client, &progress);
-        };
-        failure = None;
-        let assignment = match waited {
-            Ok(assignment) => assignment,
-            Err(status) if status.code() == tonic::Code::NotFound => {
-                tracing::warn!(reason = %status.message(), "registering again");
-                runtime.block_on(register(&mut client, &options, &address, &progress))?;
-                after = 0;
-                continue;
-            }
-            Err(status) => bail!("coordinator: {}", status.message()),
-        };
-        let generation = assignment.generation;
-        let work = match assignment.work {
-            Some(Work::Finish(_)) => {
-                tracing::info!("the job is finished");
-                return Ok(());
-            }
-            Some(work) => work,
-            None => bail!("the coordinator sent generation {generation} without work"),
-        };
-        after = generation;
-        progress.generation.store(after, Ordering::SeqCst);
-        progress.cancel.send_replace(false);
-        let span = tracing::info_span!("generation", generation);
-        let _entered = span.enter();
-        let group = Group {
-            options: &options,
-            link: &link,
-            mailbox: &mailbox,
-            progress: &progress,
-            shutdown: &shutdown,
-        };
-        let ended = match &work {
-            Work::Train(train) => {
-                training::train_generation(&runtime, &mut client, &group, generation, train)
-            }
-            Work::Evaluate(evaluate) => {
-                evaluate::evaluate(&runtime, &mut client, &group, generation, evaluate)
-            }
-            Work::Finish(_) => Ok(Ending::Done),
-        };
-        match ended {
-            Ok(Ending::Done) => {
-                failures = 0;
-                tracing::info!("generation {generation} done");
-            }
-            Ok(Ending::Stopping) => {
-                drop(_entered);
-                return leave(&runtime, &mut client, &progress);
-            }
-            Ok(Ending::Suspended) => {
-                tracing::warn!(
-                    "the coordinator suspended the job; exiting (a requeued job resumes from its last commit)"
-                );
-                return Ok(());
-            }
-            Err(error) => {
-                failures += 1;
-                progress.metrics.add(&metrics::RESTARTS, &[], 1.0);
-                tracing::warn!(error = %format!("{error:#}"), "generation abandoned");
-                failure = Some(GenerationFailure {
-                    reason: format!("{error:#}"),
-                    suspect_rank: suspect_rank(&error),
-                    corrupt_checkpoint: error
-                        .chain()
-                        .find_map(|cause| cause.downcast_ref::<CorruptCheckpoint>())
-                        .map(|corrupt| corrupt.location.clone())
-                        .unwrap_or_default(),
-                });
-                if failures >= MAX_CONSECUTIVE_FAILURES {
-                    bail!("{failures} generations in a row failed; last error: {error:#}");
+    let context = WorkerContext {
+        options: &options,
+        link: &link,
+        mailbox: &mailbox,
+        progress: &progress,
+        shutdown: &shutdown,
+    };
+    Daemon {
+        runtime: &runtime,
+        client,
+        context,
+        address,
+    }
+    .serve()
+}
+
+/// The worker between assignments.
+struct Daemon<'a> {
+    runtime: &'a Runtime,
+    client: Client,
+    context: WorkerContext<'a>,
+    /// The collective address it registers with.
+    address: String,
+}
+
+impl Daemon<'_> {
+    /// Awaits assignments and does them until the job is finished, SIGTERM arrives or too
+    /// many generations in a row failed.
+    fn serve(mut self) -> anyhow::Result<()> {
+        let mut after = 0;
+        let mut failures = 0;
+        let mut failure: Option<GenerationFailure> = None;
+        loop {
+            let Some(waited) = self.next_assignment(after, failure.take().as_ref()) else {
+                return leave(self.runtime, &mut self.client, self.context.progress);
+            };
+            let assignment = match waited {
+                Ok(assignment) => assignment,
+                Err(AwaitError::Unknown(reason)) => {
+                    tracing::warn!(%reason, "registering again");
+                    let (options, progress) = (self.context.options, self.context.progress);
+                    self.runtime.block_on(register(
+                        &mut self.client,
+                        options,
+                        &self.address,
+                        progress,
+                    ))?;
+                    after = 0;
+                    continue;
+                }
+                Err(error) => return Err(error.into()),
+            };
+            after = assignment.generation;
+            match self.work(&assignment) {
+                Ok(Some(Ending::Done)) => {
+                    failures = 0;
+                    tracing::info!("generation {after} done");
+                }
+                Ok(Some(Ending::Stopping)) => {
+                    return leave(self.runtime, &mut self.client, self.context.progress);
+                }
+                Ok(Some(Ending::Suspended)) => {
+                    tracing::warn!(
+                        "the coordinator suspended the job; exiting (a requeued job resumes from its last commit)"
+                    );
+                    return Ok(());
+                }
+                Ok(None) => {
+                    tracing::info!("the job is finished");
+                    return Ok(());
+                }
+                Err(error) => {
+                    failures += 1;
+                    failure = Some(self.failed(&error, failures)?);
                 }
             }
         }
     }
-}
 
-/// The peer rank a failed generation's error points at: the one that timed out, whose stream
-/// broke or that sent a bad chunk. `None`: the worker's own failure (an upload, its data).
-fn suspect_rank(error: &anyhow::Error) -> Option<u32> {
-    let collective = error
-        .chain()
-        .find_map(|cause| cause.downcast_ref::<CollectiveError>())?;
-    match collective {
-        CollectiveError::Connect { rank, .. }
-        | CollectiveError::PeerGone { rank }
-        | CollectiveError::InboundBroken { rank, .. }
-        | CollectiveError::Timeout { rank, .. } => Some(*rank as u32),
-        CollectiveError::BadChunk { sender, .. } => Some(*sender),
-        CollectiveError::Cancelled | CollectiveError::Aborted(_) | CollectiveError::Tls(_) => None,
+    /// The next assignment after generation `after`; `None` once SIGTERM arrived.
+    fn next_assignment(
+        &mut self,
+        after: u64,
+        failure: Option<&GenerationFailure>,
+    ) -> Option<Result<Assignment, AwaitError>> {
+        let progress = self.context.progress;
+        let shutdown = self.context.shutdown;
+        let client = &mut self.client;
+        self.runtime.block_on(async {
+            tokio::select! {
+                assignment = await_assignment(client, progress, after, failure) => Some(assignment),
+                () = shutdown.cancelled() => None,
+            }
+        })
+    }
+
+    /// Does one assignment; `None` when it says the job is finished.
+    fn work(&mut self, assignment: &Assignment) -> anyhow::Result<Option<Ending>> {
+        let generation = assignment.generation;
+        let progress = self.context.progress;
+        progress.generation.store(generation, Ordering::SeqCst);
+        progress.cancel.send_replace(false);
+        let _span = tracing::info_span!("generation", generation).entered();
+        let (runtime, client, context) = (self.runtime, &mut self.client, &self.context);
+        match &assignment.work {
+            Work::Train(work) => {
+                training::train_generation(runtime, client, context, generation, work).map(Some)
+            }
+            Work::Evaluate(work) => {
+                evaluate::evaluate(runtime, client, context, generation, work).map(Some)
+            }
+            Work::Finish => Ok(None),
+        }
+    }
+
+    /// Counts a failed generation and builds the report the next request for work carries;
+    /// gives up after [`MAX_CONSECUTIVE_FAILURES`] in a row.
+    fn failed(&self, error: &anyhow::Error, failures: u32) -> anyhow::Result<GenerationFailure> {
+        self.context
+            .progress
+            .metrics
+            .add(&metrics::RESTARTS, &[], 1.0);
+        let report = failure::report(error);
+        tracing::warn!(error = %report.reason, cause = ?report.cause, "generation abandoned");
+        if failures >= MAX_CONSECUTIVE_FAILURES {
+            bail!("{failures} generations in a row failed; last error: {error:#}");
+        }
+        Ok(report)
     }
 }
 

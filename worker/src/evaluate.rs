@@ -2,14 +2,13 @@
 //! evaluate them, upload the report and commit it.
 
 use anyhow::Context;
-use proto::convert::{ConvertError, device_from_wire};
-use proto::v1::EvaluateAssignment;
 use settings::Phase;
-use settings::evaluation::EvaluationSpec;
+use settings::work::EvaluateWork;
 use tokio::runtime::Runtime;
 
-use crate::checkpoints::{self, CommitRequest};
-use crate::daemon::{Ending, Group};
+use crate::checkpoints;
+use crate::commits::{self, CommitRequest};
+use crate::context::{Ending, WorkerContext};
 use crate::device;
 use crate::session::Client;
 
@@ -18,57 +17,40 @@ use crate::session::Client;
 pub fn evaluate(
     runtime: &Runtime,
     client: &mut Client,
-    group: &Group<'_>,
+    context: &WorkerContext<'_>,
     generation: u64,
-    assignment: &EvaluateAssignment,
+    work: &EvaluateWork,
 ) -> anyhow::Result<Ending> {
-    let Group {
-        options,
-        progress,
-        shutdown,
-        ..
-    } = *group;
-    let spec = EvaluationSpec::try_from(
-        assignment
-            .spec
-            .as_ref()
-            .ok_or(ConvertError::Missing("evaluate.spec"))?,
-    )?;
-    let backend = device::backend(match options.device {
-        Some(device) => device,
-        None => device_from_wire(assignment.device, "evaluate.device")?,
-    });
-    let scratch = options
-        .scratch
-        .join(format!("worker-{}", progress.worker_id()));
+    let backend = device::backend(context.options.device.unwrap_or(work.device));
+    let scratch = context.scratch();
     let weights_dir = scratch.join("evaluate-weights");
     let report_dir = scratch.join("evaluation");
     for dir in [&weights_dir, &report_dir] {
-        let _ = std::fs::remove_dir_all(dir);
+        checkpoints::clear(dir)?;
     }
-    runtime.block_on(checkpoints::download(&assignment.weights, &weights_dir))?;
-    if shutdown.is_cancelled() {
+    runtime.block_on(checkpoints::download(&work.weights, &weights_dir))?;
+    if context.shutdown.is_cancelled() {
         return Ok(Ending::Stopping);
     }
-    tracing::info!(weights = %assignment.weights, "evaluating");
+    tracing::info!(weights = %work.weights, "evaluating");
     let report = evaluation::run_evaluation(
-        &spec,
+        &work.spec,
         &weights_dir.join("model.safetensors"),
         &report_dir,
         &backend.device(),
     )
-    .with_context(|| format!("evaluating {}", assignment.weights))?;
+    .with_context(|| format!("evaluating {}", work.weights))?;
     tracing::info!(
         seconds = report.seconds,
         "evaluation done; report.json, report.md and figures written"
     );
     let request = CommitRequest {
         dir: &report_dir,
-        location: format!("{}/g{generation}", assignment.report_prefix),
+        location: format!("{}/g{generation}", work.report_prefix),
         phase: Phase::Evaluate,
         step: 1,
         generation,
     };
-    checkpoints::commit(runtime, client, progress, request)?;
+    commits::commit(runtime, client, context.progress, request)?;
     Ok(Ending::Done)
 }

@@ -8,15 +8,9 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use tonic_health::ServingStatus;
-use tonic_health::pb::health_server::{Health, HealthServer};
 use tonic_health::server::HealthReporter;
 
-use crate::session::Progress;
-
-/// The health service of a collective server, and the reporter that changes what it says.
-pub fn collective_health() -> (HealthReporter, HealthServer<impl Health>) {
-    tonic_health::server::health_reporter()
-}
+use crate::progress::Progress;
 
 /// Keeps the server's overall status in step with [`Progress::health`], checked every
 /// `interval` (the heartbeat's, which is what can change it).

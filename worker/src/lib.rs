@@ -3,17 +3,38 @@
 //! checkpoints it is asked to.
 //!
 //! It knows ranks, flat gradient vectors and files, never attention heads: the model is built
-//! and stepped through `trainer-core`'s public API.
+//! and stepped through `trainer-core`'s public API. The layers, from the process down (each
+//! imports only layers below it; `ARCHITECTURE.md` has the picture):
+//!
+//! - `daemon`: the loop over assignments; `failure`: whose fault a failed generation was.
+//! - `training`, `evaluate`: one generation's work; `generation` prepares a training one.
+//! - `step`: one optimizer step over the worker's replicas; `accounting`: its books.
+//! - `commits`: when rank 0 commits, and the commit in flight; `checkpoints`: the transfers.
+//! - `session`: the coordinator's RPCs and heartbeats; `health`: the gRPC health service.
+//! - leaves: `context`, `options`, `progress`, `metrics`, `device`, `shutdown`, `slurm`,
+//!   [`collective`] (the ring).
 
 pub mod bench;
-pub mod checkpoints;
 pub mod collective;
-pub mod daemon;
-pub mod device;
-pub mod evaluate;
-pub mod health;
-pub mod metrics;
-pub mod session;
-pub mod shutdown;
 pub mod slurm;
-pub mod training;
+
+mod accounting;
+mod checkpoints;
+mod commits;
+mod context;
+mod daemon;
+mod device;
+mod evaluate;
+mod failure;
+mod generation;
+mod health;
+mod metrics;
+mod options;
+mod progress;
+mod session;
+mod shutdown;
+mod step;
+mod training;
+
+pub use daemon::run;
+pub use options::{WorkerOptions, WorkerTls};

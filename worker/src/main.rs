@@ -11,7 +11,7 @@ use proto::tls::TlsClientArgs;
 use settings::DeviceChoice;
 use telemetry::logging::LogArgs;
 use worker::bench::BenchArgs;
-use worker::daemon::{WorkerOptions, WorkerTls, run};
+use worker::{WorkerOptions, WorkerTls, run};
 
 /// A worker daemon that joins a job's coordinator and trains until the job ends.
 #[derive(Debug, Parser)]
@@ -112,13 +112,24 @@ struct DaemonArgs {
 /// `--listen`'s default outside Slurm.
 const LOOPBACK_ANY_PORT: &str = "127.0.0.1:0";
 
+/// Why a flag's value is not a usable number of seconds.
+#[derive(Debug, thiserror::Error)]
+enum SecondsError {
+    /// Not a number at all.
+    #[error("{0}")]
+    NotANumber(#[from] std::num::ParseFloatError),
+    /// Zero, negative, or too large for a `Duration`.
+    #[error("expected a number of seconds above 0")]
+    OutOfRange,
+}
+
 /// A whole number of seconds or a fraction, above zero and small enough for a `Duration`.
-fn positive_seconds(text: &str) -> Result<f64, String> {
-    let seconds: f64 = text.parse().map_err(|e| format!("{e}"))?;
+fn positive_seconds(text: &str) -> Result<f64, SecondsError> {
+    let seconds: f64 = text.parse()?;
     if seconds > 0.0 && Duration::try_from_secs_f64(seconds).is_ok() {
         Ok(seconds)
     } else {
-        Err("expected a number of seconds above 0".into())
+        Err(SecondsError::OutOfRange)
     }
 }
 

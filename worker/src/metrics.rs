@@ -6,7 +6,7 @@
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::Instant;
 
-use data::{BatchSource, Samples};
+use data::{BatchSource, SampleError, Samples};
 use telemetry::Metric;
 use telemetry::histogram::SECONDS_BUCKETS;
 pub use telemetry::training::{GENERATION, GRAD_NORM, LEARNING_RATE, LOSS, STAGE, STEP};
@@ -105,7 +105,7 @@ impl<'a, S: BatchSource> Timed<'a, S> {
 }
 
 impl<S: BatchSource> BatchSource for Timed<'_, S> {
-    fn samples(&self, step: u64, first_sample: u64, count: usize) -> Result<Samples, String> {
+    fn samples(&self, step: u64, first_sample: u64, count: usize) -> Result<Samples, SampleError> {
         let started = Instant::now();
         let samples = self.inner.samples(step, first_sample, count);
         let waited = u64::try_from(started.elapsed().as_nanos()).unwrap_or(u64::MAX);

@@ -1,109 +1,27 @@
 //! The worker's session with the coordinator: connecting, registering, heartbeats that carry
 //! its progress, waiting for assignments, and leaving.
 
-use std::sync::atomic::{AtomicBool, AtomicI32, AtomicU64, Ordering};
-use std::sync::{Arc, RwLock};
+use std::sync::Arc;
+use std::sync::atomic::Ordering;
 use std::time::{Duration, Instant};
 
 use anyhow::{Context, anyhow, bail};
+use proto::convert::ConvertError;
 use proto::convert::device_to_wire;
 use proto::v1::coordinator_client::CoordinatorClient;
-use proto::v1::{
-    Activity, Assignment, AwaitAssignmentRequest, GenerationFailure, HeartbeatRequest,
-    LeaveRequest, RegisterRequest,
-};
+use proto::v1::{AwaitAssignmentRequest, HeartbeatRequest, LeaveRequest, RegisterRequest};
 use settings::XFactorConfig;
-use telemetry::Registry;
+use settings::work::{Assignment, GenerationFailure};
 use tokio::runtime::Runtime;
-use tokio::sync::watch;
 use tonic::service::interceptor::InterceptedService;
 use tonic::transport::Channel;
 
-use crate::daemon::{WorkerOptions, WorkerTls};
 use crate::metrics;
+use crate::options::{WorkerOptions, WorkerTls};
+use crate::progress::Progress;
 
 /// The coordinator's client with the job token attached.
 pub type Client = CoordinatorClient<InterceptedService<Channel, proto::AttachToken>>;
-
-/// What the training thread and the heartbeat task share.
-pub struct Progress {
-    /// This worker's id (0 before registration).
-    pub worker: AtomicU64,
-    /// The secret its registration was given; every request naming the id carries it.
-    pub session: RwLock<String>,
-    /// The generation being worked in.
-    pub generation: AtomicU64,
-    /// Steps done in it.
-    pub step: AtomicU64,
-    /// What the worker is doing within its step (a `proto::v1::Activity` value), so the
-    /// coordinator can tell stuck from slow.
-    pub activity: AtomicI32,
-    /// Set when the coordinator abandons the generation: the step in flight stops.
-    pub cancel: watch::Sender<bool>,
-    /// Whether the coordinator's last heartbeat reply still knew this worker: false once it
-    /// was removed (silent, or stuck in its step while peers waited) until it registers again.
-    pub known: AtomicBool,
-    /// The worker's Prometheus series.
-    pub metrics: Arc<Registry>,
-}
-
-impl Progress {
-    /// Nothing registered yet.
-    pub fn new() -> Self {
-        let (cancel, _) = watch::channel(false);
-        Self {
-            worker: AtomicU64::new(0),
-            session: RwLock::new(String::new()),
-            generation: AtomicU64::new(0),
-            step: AtomicU64::new(0),
-            activity: AtomicI32::new(Activity::Idle as i32),
-            cancel,
-            known: AtomicBool::new(false),
-            metrics: Arc::new(Registry::new()),
-        }
-    }
-
-    /// `/healthz`: healthy while the coordinator knows this worker (or it has not registered
-    /// yet); removed, it is not, so a liveness probe restarts a worker stuck in its step.
-    pub fn health(progress: &Arc<Self>) -> telemetry::http::HealthCheck {
-        let progress = Arc::clone(progress);
-        Arc::new(move || {
-            if progress.known.load(Ordering::SeqCst) || progress.worker_id() == 0 {
-                Ok(())
-            } else {
-                Err(format!(
-                    "the coordinator removed worker {} (no heartbeat, or no progress in step {} while its peers waited); it registers again once its step returns",
-                    progress.worker_id(),
-                    progress.step.load(Ordering::SeqCst)
-                ))
-            }
-        })
-    }
-
-    /// This worker's id.
-    pub fn worker_id(&self) -> u64 {
-        self.worker.load(Ordering::SeqCst)
-    }
-
-    /// This registration's secret.
-    pub fn session(&self) -> String {
-        self.session
-            .read()
-            .unwrap_or_else(std::sync::PoisonError::into_inner)
-            .clone()
-    }
-
-    /// Records what the worker does next; the next heartbeat carries it.
-    pub fn doing(&self, activity: Activity) {
-        self.activity.store(activity as i32, Ordering::SeqCst);
-    }
-}
-
-impl Default for Progress {
-    fn default() -> Self {
-        Self::new()
-    }
-}
 
 /// Tells the coordinator this worker is gone, so its group re-forms at once.
 pub fn leave(runtime: &Runtime, client: &mut Client, progress: &Progress) -> anyhow::Result<()> {
@@ -194,28 +112,49 @@ pub async fn register(
     ))
 }
 
+/// Why no assignment came.
+#[derive(Debug, thiserror::Error)]
+pub enum AwaitError {
+    /// The coordinator no longer knows this worker (it restarted, or removed the worker):
+    /// register again.
+    #[error("the coordinator does not know this worker: {0}")]
+    Unknown(String),
+    /// The coordinator refused the request.
+    #[error("the coordinator refused the request for work: {0}")]
+    Refused(String),
+    /// The coordinator sent an assignment this build cannot act on.
+    #[error("the coordinator's assignment is malformed")]
+    Malformed(#[source] ConvertError),
+}
+
 /// Blocks until the coordinator has work for this worker after generation `after`, retrying
-/// while the coordinator is unavailable (it may be restarting).
+/// while the coordinator is unavailable (it may be restarting). `failure` tells it why this
+/// worker's part of `after` failed.
 pub async fn await_assignment(
     client: &mut Client,
     progress: &Progress,
     after: u64,
     failure: Option<&GenerationFailure>,
-) -> Result<Assignment, tonic::Status> {
+) -> Result<Assignment, AwaitError> {
     loop {
         let request = AwaitAssignmentRequest {
             worker_id: progress.worker_id(),
             after_generation: after,
             session: progress.session(),
-            failure: failure.cloned(),
+            failure: failure.map(Into::into),
         };
         match client.await_assignment(request).await {
-            Ok(reply) => return Ok(reply.into_inner()),
+            Ok(reply) => {
+                return Assignment::try_from(&reply.into_inner()).map_err(AwaitError::Malformed);
+            }
             Err(status) if status.code() == tonic::Code::Unavailable => {
                 tracing::warn!("coordinator unavailable; retrying");
                 tokio::time::sleep(Duration::from_millis(500)).await;
             }
-            Err(status) => return Err(status),
+            Err(status) if status.code() == tonic::Code::NotFound => {
+                return Err(AwaitError::Unknown(status.message().to_string()));
+            }
+            Err(status) => return Err(AwaitError::Refused(status.message().to_string())),
         }
     }
 }

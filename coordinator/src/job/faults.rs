@@ -9,6 +9,32 @@ use settings::Phase;
 
 use super::{JobState, SKIPPED_EXAMPLES, records};
 
+/// The longest wait between groups while the object store keeps failing.
+pub const STORE_BACKOFF_MAX: Duration = Duration::from_secs(8);
+
+/// The object store's back-off: consecutive generations that failed on it, and until when the
+/// next group waits.
+#[derive(Debug, Clone, Default)]
+pub(super) struct StoreRetry {
+    failures: u32,
+    until: Option<Instant>,
+}
+
+impl StoreRetry {
+    /// Counts one more failure at `now`; returns the wait it imposes.
+    fn fail(&mut self, now: Instant) -> Duration {
+        let backoff = Duration::from_secs(1 << self.failures.min(8)).min(STORE_BACKOFF_MAX);
+        self.failures += 1;
+        self.until = Some(now + backoff);
+        backoff
+    }
+
+    /// Whether a group may form at `now`.
+    pub(super) fn allows(&self, now: Instant) -> bool {
+        self.until.is_none_or(|until| now >= until)
+    }
+}
+
 impl JobState {
     /// Removes the members of the running group that have not moved on from computing a step
     /// for `stall_timeout` while a peer waits for them in that step's all-reduce: a worker
@@ -88,10 +114,52 @@ impl JobState {
             "generation failed; the suspect sits out and the group re-forms from the last commit"
         );
         self.blame(suspect, now);
+        self.end_generation(now);
+        true
+    }
+
+    /// A member says its part of `generation` failed because the object store did: the
+    /// generation ends and the group re-forms from the last commit, but no worker is blamed.
+    /// The next group waits out the store's own back-off instead (1 s, doubling to
+    /// [`STORE_BACKOFF_MAX`], reset by the next commit that lands), so a store that is down
+    /// is retried often enough to go on within seconds of its return. Returns whether the
+    /// generation ended.
+    pub fn store_failed(
+        &mut self,
+        worker: u64,
+        generation: u64,
+        reason: &str,
+        now: Instant,
+    ) -> bool {
+        if !self.in_running_group(worker, generation) {
+            return false;
+        }
+        let backoff = self.store_retry.fail(now);
+        tracing::warn!(
+            generation,
+            reporter = worker,
+            %reason,
+            retry_in_s = backoff.as_secs_f64(),
+            "generation failed on the object store; no worker is blamed, the group re-forms after the store's back-off"
+        );
+        self.end_generation(now);
+        true
+    }
+
+    /// Ends the running generation at `now` as a restart: the next group re-forms from the
+    /// last commit.
+    pub(super) fn end_generation(&mut self, now: Instant) {
         self.group = None;
         self.report.restarts += 1;
         self.lost_at = Some(now);
-        true
+    }
+
+    /// Whether `worker` is a member of `generation` and that generation still runs: a report
+    /// about any other generation changes nothing.
+    fn in_running_group(&self, worker: u64, generation: u64) -> bool {
+        self.group
+            .as_ref()
+            .is_some_and(|g| g.generation == generation && g.members.contains(&worker))
     }
 
     /// A member of `generation` found the committed checkpoint at `location` corrupt. When it
@@ -105,10 +173,7 @@ impl JobState {
         location: &str,
         now: Instant,
     ) -> bool {
-        let Some(group) = self.group.as_ref().filter(|g| g.generation == generation) else {
-            return false;
-        };
-        if !group.members.contains(&worker) {
+        if !self.in_running_group(worker, generation) {
             return false;
         }
         if self
@@ -127,9 +192,7 @@ impl JobState {
         } else {
             tracing::error!(%location, "a checkpoint the group starts from is corrupt; nothing to fall back to");
         }
-        self.group = None;
-        self.report.restarts += 1;
-        self.lost_at = Some(now);
+        self.end_generation(now);
         true
     }
 
@@ -163,9 +226,7 @@ impl JobState {
                 self.blame(worker, now);
             }
         }
-        self.group = None;
-        self.report.restarts += 1;
-        self.lost_at = Some(now);
+        self.end_generation(now);
         true
     }
 

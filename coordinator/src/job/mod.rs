@@ -14,9 +14,11 @@ use proto::v1::{Activity, Assignment, StepReport};
 use settings::Phase;
 
 use crate::plan::Plan;
+use faults::StoreRetry;
 
 mod assignments;
 mod faults;
+mod forming;
 mod queries;
 mod records;
 mod steps;
@@ -119,6 +121,8 @@ pub struct JobState {
     assignments: BTreeMap<u64, Assignment>,
     first_registration: Option<Instant>,
     lost_at: Option<Instant>,
+    /// The object store's back-off after generations that failed on it.
+    store_retry: StoreRetry,
     report: Report,
     /// Frames skipped by each worker in each generation (its reports carry a running count).
     skipped: HashMap<(u64, u64), u64>,
@@ -174,6 +178,7 @@ impl JobState {
             assignments: BTreeMap::new(),
             first_registration: None,
             lost_at: None,
+            store_retry: StoreRetry::default(),
             report: Report {
                 job,
                 stage1_final: durable.stage1_final.clone(),
@@ -390,14 +395,27 @@ impl JobState {
         true
     }
 
-    /// Accepts a verified checkpoint commit from the current group; returns whether its phase
-    /// ended with it.
-    pub fn commit(
-        &mut self,
+    /// `job.json` as it will read once `commit` is recorded, without recording it: the
+    /// service writes this first and calls [`JobState::commit`] only when the write
+    /// succeeded, so memory never holds a commit the store does not.
+    pub fn durable_after_commit(
+        &self,
         worker: u64,
-        commit: Commit,
+        commit: &Commit,
         generation: u64,
-    ) -> Result<bool, Refusal> {
+    ) -> Result<Durable, Refusal> {
+        self.check_commit(worker, commit, generation)?;
+        let mut durable = self.durable.clone();
+        durable.record_commit(
+            commit.clone(),
+            self.phase_steps(commit.phase),
+            self.next_phase(commit.phase),
+        );
+        Ok(durable)
+    }
+
+    /// Why `worker` may not commit `commit` in `generation`, if it may not.
+    fn check_commit(&self, worker: u64, commit: &Commit, generation: u64) -> Result<(), Refusal> {
         if !self.is_current(generation) {
             return Err(Refusal::StaleGeneration(generation));
         }
@@ -414,34 +432,43 @@ impl JobState {
                 job: self.durable.phase,
             });
         }
+        Ok(())
+    }
+
+    /// Accepts a verified checkpoint commit from the current group; returns whether its phase
+    /// ended with it.
+    pub fn commit(
+        &mut self,
+        worker: u64,
+        commit: Commit,
+        generation: u64,
+    ) -> Result<bool, Refusal> {
+        self.check_commit(worker, &commit, generation)?;
         tracing::info!(phase = %commit.phase, step = commit.step, location = %commit.location, "checkpoint committed");
         self.report.commits.push(commit.clone());
-        self.durable.push_commit(commit.clone());
-        if commit.step < self.phase_steps(commit.phase) {
+        self.store_retry = StoreRetry::default();
+        let (steps, next) = (
+            self.phase_steps(commit.phase),
+            self.next_phase(commit.phase),
+        );
+        if !self.durable.record_commit(commit.clone(), steps, next) {
             self.grow_at_commit(commit.step);
             return Ok(false);
         }
         self.group = None;
         self.lost_at = None;
-        self.durable.phase = self.next_phase(commit.phase);
         match commit.phase {
             Phase::Stage1 => {
-                self.durable.stage1_final = Some(commit.location.clone());
                 self.report.stage1_final = Some(commit.location);
-                self.durable.last_commit = None;
-                self.durable.earlier_commits.clear();
                 tracing::info!("stage 1 finished; stage 2 starts from its final weights");
             }
+            Phase::Stage2 if self.finished() => {
+                tracing::info!("stage 2 finished; the job is done");
+            }
             Phase::Stage2 => {
-                self.durable.stage2_final = Some(commit.location);
-                if self.finished() {
-                    tracing::info!("stage 2 finished; the job is done");
-                } else {
-                    tracing::info!("stage 2 finished; one worker evaluates its final weights");
-                }
+                tracing::info!("stage 2 finished; one worker evaluates its final weights");
             }
             Phase::Evaluate | Phase::Finished => {
-                self.durable.evaluation = Some(commit.location.clone());
                 self.report.evaluation = Some(commit.location);
                 tracing::info!("evaluation committed; the job is done");
             }
@@ -484,9 +511,7 @@ impl JobState {
                     troubled,
                     "abandoning generation; the group re-forms from the last commit"
                 );
-                self.group = None;
-                self.report.restarts += 1;
-                self.lost_at = Some(now);
+                self.end_generation(now);
                 changed = true;
             }
         }
@@ -494,97 +519,6 @@ impl JobState {
             changed |= self.try_form(now);
         }
         changed
-    }
-
-    fn try_form(&mut self, now: Instant) -> bool {
-        let settings = &self.plan.config.workers;
-        let (expected, minimum) = (settings.expected.0 as usize, settings.minimum.0 as usize);
-        let eligible = |m: &Member| !m.lost && !self.excluded(&m.address, now);
-        let alive = self.members.values().filter(|m| eligible(m)).count();
-        let waiting: Vec<u64> = self
-            .members
-            .iter()
-            .filter(|(_, m)| eligible(m) && m.waiting_after.is_some())
-            .map(|(&id, _)| id)
-            .collect();
-        let ready = if self.generation == self.first_generation {
-            waiting.len() >= expected
-                || (waiting.len() >= minimum
-                    && self
-                        .first_registration
-                        .is_some_and(|t| now.duration_since(t) >= self.timing.quorum_timeout))
-        } else {
-            let all_in = waiting.len() == alive || waiting.len() >= expected;
-            let grace_over = self
-                .lost_at
-                .is_none_or(|t| now.duration_since(t) >= self.timing.regroup_grace);
-            waiting.len() >= minimum && all_in && (grace_over || waiting.len() >= expected)
-        };
-        if !ready {
-            return false;
-        }
-        let phase = self.durable.phase;
-        let size = if phase.is_training() { expected } else { 1 };
-        let members: Vec<u64> = waiting.into_iter().take(size).collect();
-        self.generation += 1;
-        let peers: Vec<String> = members
-            .iter()
-            .map(|m| self.members[m].address.clone())
-            .collect();
-        tracing::info!(
-            generation = self.generation,
-            %phase,
-            world_size = members.len(),
-            resume = ?self.durable.last_commit.as_ref().map(|c| c.step),
-            "group formed"
-        );
-        for (rank, &worker) in members.iter().enumerate() {
-            let assignment = if phase.is_training() {
-                assignments::train(
-                    &self.plan,
-                    &self.durable,
-                    self.generation,
-                    phase,
-                    rank,
-                    &peers,
-                )
-            } else {
-                match assignments::evaluate(&self.plan, &self.durable, self.generation) {
-                    Some(assignment) => assignment,
-                    None => return false,
-                }
-            };
-            if rank == 0 {
-                let (resume_from, init_weights_from) = match &assignment.work {
-                    Some(proto::v1::assignment::Work::Train(train)) => {
-                        (train.resume_from.clone(), train.init_weights_from.clone())
-                    }
-                    Some(proto::v1::assignment::Work::Evaluate(evaluate)) => {
-                        (String::new(), evaluate.weights.clone())
-                    }
-                    _ => (String::new(), String::new()),
-                };
-                self.report.generations.push(GenerationStart {
-                    generation: self.generation,
-                    phase,
-                    world_size: members.len(),
-                    resume_from,
-                    init_weights_from,
-                });
-            }
-            self.assignments.insert(worker, assignment);
-            if let Some(member) = self.members.get_mut(&worker) {
-                member.finished_step = None;
-                member.activity = (Activity::Idle, 0);
-                member.activity_since = now;
-            }
-        }
-        self.group = Some(Group {
-            generation: self.generation,
-            members,
-            phase,
-        });
-        true
     }
 
     /// A worker said it is leaving (it shuts down between steps): it is treated as lost at

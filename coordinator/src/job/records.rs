@@ -58,6 +58,27 @@ impl Durable {
         }
     }
 
+    /// Records `commit` of the current phase. When it is the phase's last step
+    /// (`phase_steps`), the phase ends: its final checkpoint is kept where the next phase
+    /// looks for it, and the job moves to `next_phase`. Returns whether the phase ended.
+    pub fn record_commit(&mut self, commit: Commit, phase_steps: u64, next_phase: Phase) -> bool {
+        self.push_commit(commit.clone());
+        if commit.step < phase_steps {
+            return false;
+        }
+        self.phase = next_phase;
+        match commit.phase {
+            Phase::Stage1 => {
+                self.stage1_final = Some(commit.location);
+                self.last_commit = None;
+                self.earlier_commits.clear();
+            }
+            Phase::Stage2 => self.stage2_final = Some(commit.location),
+            Phase::Evaluate | Phase::Finished => self.evaluation = Some(commit.location),
+        }
+        true
+    }
+
     /// Drops the newest commit (found corrupt) for the one before it, if any; returns the
     /// commit dropped.
     pub fn fall_back(&mut self) -> Option<Commit> {

@@ -7,16 +7,17 @@ use std::time::{Duration, Instant};
 use proto::convert::{ConvertError, device_from_wire, phase_from_wire};
 use proto::v1::coordinator_server::Coordinator;
 use proto::v1::{
-    Assignment, AwaitAssignmentRequest, CheckpointCommit, CommitAck, GenerationFailure,
-    HeartbeatReply, HeartbeatRequest, JobStatus, LeaveReply, LeaveRequest, RegisterReply,
-    RegisterRequest, StatusRequest, StepAck, StepReport,
+    Assignment, AwaitAssignmentRequest, CheckpointCommit, CommitAck, HeartbeatReply,
+    HeartbeatRequest, JobStatus, LeaveReply, LeaveRequest, RegisterReply, RegisterRequest,
+    StatusRequest, StepAck, StepReport,
 };
 use settings::XFactorConfig;
+use settings::work::{FailureCause, GenerationFailure};
 use tonic::{Request, Response, Status};
 use tracing::Instrument;
 
 use super::CoordinatorService;
-use super::store::{DurableWriteError, chain, verify, write_durable};
+use super::store::{DurableWriteError, chain, verify, write_durable, write_durable_held};
 use crate::job::{Commit, Refusal};
 use crate::metrics;
 
@@ -56,7 +57,8 @@ impl Coordinator for CoordinatorService {
         let span = tracing::debug_span!("rpc_await_assignment", worker = request.worker_id);
         self.sessions.check(request.worker_id, &request.session)?;
         if let Some(failure) = &request.failure {
-            self.record_failure_report(&request, failure).await?;
+            let failure = GenerationFailure::try_from(failure).map_err(malformed)?;
+            self.record_failure_report(&request, &failure).await?;
         }
         self.assign(request).instrument(span).await
     }
@@ -165,9 +167,10 @@ impl Coordinator for CoordinatorService {
 }
 
 impl CoordinatorService {
-    /// Acts on a worker's report that its part of a generation failed: ends the generation
-    /// and blames the suspect, or, for a corrupt commit, falls back to the one before it and
-    /// records that in `job.json` so a restarted coordinator does not pick it again.
+    /// Acts on a worker's report that its part of a generation failed, by its cause: ends
+    /// the generation and blames the suspect (the reporter, or the peer it names); for a store
+    /// fault, ends it and blames no one; for a corrupt commit, falls back to the one before it
+    /// and records that in `job.json` so a restarted coordinator does not pick it again.
     async fn record_failure_report(
         &self,
         request: &AwaitAssignmentRequest,
@@ -175,32 +178,37 @@ impl CoordinatorService {
     ) -> Result<(), Status> {
         let (worker, generation, now) =
             (request.worker_id, request.after_generation, Instant::now());
+        let reason = failure.reason.as_str();
         let mut state = self.state.lock().await;
-        if failure.corrupt_checkpoint.is_empty() {
-            let ended = state.generation_failed(
-                worker,
-                generation,
-                &failure.reason,
-                failure.suspect_rank,
-                now,
-            );
-            drop(state);
-            if ended {
-                self.changed.notify_waiters();
+        let ended = match &failure.cause {
+            FailureCause::Worker => state.generation_failed(worker, generation, reason, None, now),
+            FailureCause::Peer { rank } => {
+                let rank = u32::try_from(*rank).ok();
+                state.generation_failed(worker, generation, reason, rank, now)
             }
-            return Ok(());
-        }
-        if !state.checkpoint_corrupt(worker, generation, &failure.corrupt_checkpoint, now) {
-            return Ok(());
-        }
-        let durable = state.durable().clone();
+            FailureCause::Store => state.store_failed(worker, generation, reason, now),
+            FailureCause::CorruptCheckpoint { location } => {
+                if !state.checkpoint_corrupt(worker, generation, location, now) {
+                    return Ok(());
+                }
+                let durable = state.durable().clone();
+                drop(state);
+                self.changed.notify_waiters();
+                return write_durable(&self.checkpoints, &durable, &self.durable_version)
+                    .await
+                    .map_err(|e| {
+                        Status::unavailable(format!(
+                            "recording the fall-back failed: {}",
+                            chain(&e)
+                        ))
+                    });
+            }
+        };
         drop(state);
-        self.changed.notify_waiters();
-        write_durable(&self.checkpoints, &durable, &self.durable_version)
-            .await
-            .map_err(|e| {
-                Status::unavailable(format!("recording the fall-back failed: {}", chain(&e)))
-            })
+        if ended {
+            self.changed.notify_waiters();
+        }
+        Ok(())
     }
 
     async fn admit(&self, request: RegisterRequest) -> Result<Response<RegisterReply>, Status> {
@@ -284,6 +292,10 @@ impl CoordinatorService {
         }
     }
 
+    /// Records a verified commit: `job.json` is written first, with the commit in it, and
+    /// the job's memory changes only once that write succeeded, so memory never holds a
+    /// commit the store does not. The lock on `job.json`'s version is held throughout, so no
+    /// other write of it comes between; the job's own lock is never held across the write.
     async fn record_commit(&self, commit: CheckpointCommit) -> Result<Response<CommitAck>, Status> {
         let refuse = |reason: String| {
             tracing::warn!(%reason, "commit refused");
@@ -296,24 +308,23 @@ impl CoordinatorService {
         if let Err(check) = verify(&commit.location).await {
             return refuse(chain(&check));
         }
-        let durable = {
-            let mut state = self.state.lock().await;
-            let accepted = state.commit(
-                commit.worker_id,
-                Commit {
-                    phase,
-                    step: commit.step,
-                    location: commit.location.clone(),
-                },
-                commit.generation,
-            );
-            if let Err(refusal) = accepted {
-                return refuse(refusal.to_string());
-            }
-            self.metrics.add(&metrics::COMMITS, &[], 1.0);
-            state.durable().clone()
+        let (worker, generation) = (commit.worker_id, commit.generation);
+        let commit = Commit {
+            phase,
+            step: commit.step,
+            location: commit.location,
         };
-        write_durable(&self.checkpoints, &durable, &self.durable_version)
+        let mut version = self.durable_version.lock().await;
+        let after = self
+            .state
+            .lock()
+            .await
+            .durable_after_commit(worker, &commit, generation);
+        let after = match after {
+            Ok(after) => after,
+            Err(refusal) => return refuse(refusal.to_string()),
+        };
+        write_durable_held(&self.checkpoints, &after, &mut version)
             .await
             .map_err(|e| {
                 let message = format!("recording the commit failed: {}", chain(&e));
@@ -323,6 +334,20 @@ impl CoordinatorService {
                     _ => Status::unavailable(message),
                 }
             })?;
+        let mut state = self.state.lock().await;
+        if let Err(refusal) = state.commit(worker, commit, generation) {
+            // The group ended while the write was in flight: put back what memory holds.
+            let durable = state.durable().clone();
+            drop(state);
+            let restored = write_durable_held(&self.checkpoints, &durable, &mut version).await;
+            if let Err(error) = restored {
+                tracing::error!(error = %chain(&error), "job.json holds a commit the job refused");
+            }
+            return refuse(refusal.to_string());
+        }
+        self.metrics.add(&metrics::COMMITS, &[], 1.0);
+        drop(state);
+        drop(version);
         self.changed.notify_waiters();
         Ok(Response::new(CommitAck {
             accepted: true,

@@ -7,6 +7,7 @@ use tokio::sync::Mutex;
 
 use super::ServeError;
 use crate::job::Durable;
+pub use telemetry::logging::chain;
 
 /// Name of the job-state object under the checkpoint URI.
 pub const DURABLE_OBJECT: &str = "job.json";
@@ -78,8 +79,17 @@ pub async fn write_durable(
     durable: &Durable,
     version: &Mutex<Option<ObjectVersion>>,
 ) -> Result<(), DurableWriteError> {
+    write_durable_held(checkpoints, durable, &mut *version.lock().await).await
+}
+
+/// [`write_durable`] for a caller that holds the version's lock already, so that no other
+/// write of `job.json` comes between what it read and what it writes.
+pub async fn write_durable_held(
+    checkpoints: &DataRoot,
+    durable: &Durable,
+    held: &mut Option<ObjectVersion>,
+) -> Result<(), DurableWriteError> {
     let json = serde_json::to_vec_pretty(durable).map_err(DurableWriteError::Encode)?;
-    let mut held = version.lock().await;
     let uri = checkpoints.uri().to_string();
     let written = checkpoints
         .write_if(DURABLE_OBJECT, json, held.as_ref())
@@ -182,16 +192,4 @@ pub async fn verify(location: &str) -> Result<CommitManifest, CommitCheck> {
         }
     }
     Ok(manifest)
-}
-
-/// `error` and every cause below it, joined, for messages that travel as one string.
-pub fn chain(error: &dyn std::error::Error) -> String {
-    let mut text = error.to_string();
-    let mut cause = error.source();
-    while let Some(next) = cause {
-        text.push_str(": ");
-        text.push_str(&next.to_string());
-        cause = next.source();
-    }
-    text
 }

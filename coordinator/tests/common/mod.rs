@@ -64,6 +64,25 @@ impl Running {
         text
     }
 
+    /// Waits until the coordinator's log shows `text` `count` times.
+    pub fn wait_for_log(&self, text: &str, count: usize, limit: Duration) {
+        let log = self.job.dir.join("coordinator.log");
+        let deadline = Instant::now() + limit;
+        while std::fs::read_to_string(&log)
+            .unwrap_or_default()
+            .matches(text)
+            .count()
+            < count
+        {
+            assert!(
+                Instant::now() < deadline,
+                "never logged `{text}`\n{}",
+                self.logs()
+            );
+            std::thread::sleep(Duration::from_millis(20));
+        }
+    }
+
     /// Waits for the coordinator to end and returns the report.
     pub fn finish(mut self, limit: Duration) -> Value {
         let deadline = Instant::now() + limit;
@@ -112,6 +131,21 @@ pub fn small_job(dir: &Path, workers: usize) -> LocalJob {
     job.stage2_steps = 3;
     job.checkpoint_every = 2;
     job
+}
+
+/// A two-worker job whose stage 1 has one commit, its final one, under a store location that
+/// refuses every write: a file stands where the stage's checkpoint folder goes. Removing the
+/// returned file mends the store.
+pub fn job_whose_stage1_store_refuses_writes(dir: &Path) -> (LocalJob, PathBuf) {
+    let mut job = small_job(dir, 2);
+    job.stage1_steps = 2;
+    job.checkpoint_every = 2;
+    let runtime = tokio::runtime::Runtime::new().unwrap();
+    runtime.block_on(job.prepare()).unwrap();
+    let blocker = job.checkpoint_dir().join("stage1");
+    std::fs::create_dir_all(job.checkpoint_dir()).unwrap();
+    std::fs::write(&blocker, b"not a directory").unwrap();
+    (job, blocker)
 }
 
 pub fn commits(report: &Value, stage: u64) -> Vec<(u64, String)> {

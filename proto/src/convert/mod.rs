@@ -16,6 +16,8 @@ use settings::{DeviceChoice, Phase, XFactorConfig};
 
 use crate::v1;
 
+mod work;
+
 /// A message that cannot become its settings type.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 pub enum ConvertError {
@@ -29,6 +31,15 @@ pub enum ConvertError {
         field: &'static str,
         /// The raw value.
         value: i32,
+    },
+    /// A field holds a value the message's meaning rules out (a rank outside the ring, an
+    /// interval of 0, two starting points at once).
+    #[error("`{field}` is malformed: {reason}")]
+    Malformed {
+        /// The field.
+        field: &'static str,
+        /// What is wrong with it.
+        reason: String,
     },
 }
 
@@ -575,3 +586,5 @@ impl TryFrom<&v1::EvaluationSettings> for EvaluationSpec {
 
 #[cfg(test)]
 mod tests;
+#[cfg(test)]
+mod work_tests;

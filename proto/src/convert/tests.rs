@@ -3,7 +3,7 @@
 use super::*;
 
 #[test]
-fn every_setting_survives_the_wire() {
+fn model_settings_survive_the_wire() {
     let model = XFactorConfig::benchmark();
     assert_eq!(XFactorConfig::from(&v1::ModelConfig::from(&model)), model);
     let plucker = XFactorConfig {
@@ -15,6 +15,10 @@ fn every_setting_survives_the_wire() {
         XFactorConfig::from(&v1::ModelConfig::from(&plucker)),
         plucker
     );
+}
+
+#[test]
+fn every_objective_survives_the_wire() {
     for objective in [
         StageObjective::Stage1(Stage1Config {
             lpips_weight: 0.25,
@@ -61,6 +65,10 @@ fn every_setting_survives_the_wire() {
         let back = TrainConfig::try_from(&v1::TrainSettings::from(&train)).unwrap();
         assert_eq!(back, train);
     }
+}
+
+#[test]
+fn data_settings_survive_the_wire() {
     for source in [
         DataSource::Generated {
             scenes: 3,
@@ -91,6 +99,10 @@ fn every_setting_survives_the_wire() {
             spec
         );
     }
+}
+
+#[test]
+fn evaluation_settings_phases_and_devices_survive_the_wire() {
     let evaluation = EvaluationSpec {
         oracle: OracleSpec::External {
             program: "poses".into(),

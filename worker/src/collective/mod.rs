@@ -108,14 +108,16 @@ pub struct PeerTls {
 }
 
 impl PeerTls {
-    fn client_for(&self, address: &str) -> Result<tonic::transport::ClientTlsConfig, String> {
+    fn client_for(
+        &self,
+        address: &str,
+    ) -> Result<tonic::transport::ClientTlsConfig, proto::tls::TlsError> {
         let host = address
             .rsplit_once(':')
             .map_or(address, |(host, _)| host)
             .trim_start_matches('[')
             .trim_end_matches(']');
         proto::tls::client_config(&self.ca, self.domain.as_deref().unwrap_or(host))
-            .map_err(|e| e.to_string())
     }
 }
 
@@ -184,7 +186,7 @@ impl Ring {
             .map_err(|e| failed(e.to_string()))?;
         if let Some(tls) = &link.tls {
             endpoint = endpoint
-                .tls_config(tls.client_for(address).map_err(failed)?)
+                .tls_config(tls.client_for(address).map_err(|e| failed(e.to_string()))?)
                 .map_err(|e| failed(e.to_string()))?;
         }
         let endpoint = endpoint
@@ -285,7 +287,7 @@ impl Ring {
         tokio::select! {
             message = inbox.recv() => match message {
                 Some(Ok(chunk)) => Ok(chunk),
-                Some(Err(reason)) => Err(CollectiveError::InboundBroken { rank: left, reason }),
+                Some(Err(failure)) => Err(CollectiveError::InboundBroken { rank: left, reason: failure.to_string() }),
                 None => Err(CollectiveError::InboundBroken { rank: left, reason: "stream closed".into() }),
             },
             _ = cancel.wait_for(|cancelled| *cancelled) => Err(CollectiveError::Cancelled),

@@ -29,7 +29,23 @@ pub const INBOX_CHUNKS: usize = 16;
 const ADMISSION_WAIT: Duration = Duration::from_secs(60);
 
 /// A chunk, or why the left neighbour's stream broke.
-pub(super) type Inbound = Result<Chunk, String>;
+pub(super) type Inbound = Result<Chunk, InboundFailure>;
+
+/// Why the left neighbour's stream stopped delivering chunks.
+#[derive(Debug, thiserror::Error)]
+pub(super) enum InboundFailure {
+    /// The stream itself failed (the peer died, the connection reset).
+    #[error("{}", .0.message())]
+    Stream(tonic::Status),
+    /// A chunk of another generation arrived on this generation's stream.
+    #[error("a chunk of generation {found} in the stream of generation {expected}")]
+    WrongGeneration {
+        /// The chunk's generation.
+        found: u64,
+        /// The stream's.
+        expected: u64,
+    },
+}
 
 /// This rank's secret for its outgoing stream and the one its left neighbour must present.
 #[derive(Debug, Clone, Default, PartialEq, Eq)]
@@ -185,17 +201,20 @@ impl CollectiveService {
                     Ok(Some(chunk)) => chunk,
                     Ok(None) => return Ok(Response::new(PushAck { chunks })),
                     Err(status) => {
-                        let _ = inbox.send(Err(status.message().to_string())).await;
+                        let _ = inbox
+                            .send(Err(InboundFailure::Stream(status.clone())))
+                            .await;
                         return Err(status);
                     }
                 },
             };
             if chunk.generation != generation {
-                let reason = format!(
-                    "a chunk of generation {} in the stream of generation {generation}",
-                    chunk.generation
-                );
-                let _ = inbox.send(Err(reason.clone())).await;
+                let failure = InboundFailure::WrongGeneration {
+                    found: chunk.generation,
+                    expected: generation,
+                };
+                let reason = failure.to_string();
+                let _ = inbox.send(Err(failure)).await;
                 return Err(Status::invalid_argument(reason));
             }
             chunks += 1;
@@ -226,7 +245,7 @@ pub fn spawn_server(
             .tls_config(tls.server.clone())
             .map_err(|e| super::CollectiveError::Tls(e.to_string()))?;
     }
-    let (reporter, health) = crate::health::collective_health();
+    let (reporter, health) = tonic_health::server::health_reporter();
     let serving = reporter.clone();
     tokio::spawn(async move {
         serving

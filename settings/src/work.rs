@@ -1,0 +1,135 @@
+//! What the coordinator hands a worker and what a worker says back when its part failed, as
+//! domain types: absent values are `Option`s, choices are enums, counts are `usize`. The wire
+//! forms (`proto::v1::Assignment`, `GenerationFailure`) become these once, in
+//! `proto::convert`, so nothing past the edge sees an empty string or a bare integer stage.
+
+use crate::data::DataSpec;
+use crate::evaluation::EvaluationSpec;
+use crate::train::TrainConfig;
+use crate::{DeviceChoice, Phase, XFactorConfig};
+
+/// One assignment: the generation it belongs to and what to do in it.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Assignment {
+    /// The group's generation; every report of this work names it.
+    pub generation: u64,
+    /// What to do.
+    pub work: Work,
+}
+
+/// What a worker does in a generation.
+#[derive(Debug, Clone, PartialEq)]
+pub enum Work {
+    /// Train one stage as one rank of the group.
+    Train(Box<TrainWork>),
+    /// Evaluate stage 2's final weights and commit the report.
+    Evaluate(Box<EvaluateWork>),
+    /// The job is over: exit.
+    Finish,
+}
+
+/// One rank's part of a training stage.
+#[derive(Debug, Clone, PartialEq)]
+pub struct TrainWork {
+    /// Stage 1 or stage 2.
+    pub stage: Phase,
+    /// This worker's place in the ring.
+    pub rank: usize,
+    /// Collective addresses of every rank, by rank; its length is the world size.
+    pub peers: Vec<String>,
+    /// Steps of the stage; training continues from [`TrainStart`]'s step up to this.
+    pub total_steps: u64,
+    /// Where the trainer's state comes from.
+    pub start: TrainStart,
+    /// Where this stage's checkpoints go (URI prefix).
+    pub checkpoint_prefix: String,
+    /// A checkpoint is written and committed every this many steps (and after the last).
+    pub checkpoint_every: u64,
+    /// Parameter checksums are computed and reported every this many steps (and after the last).
+    pub checksum_every: u64,
+    /// LPIPS weights (URI or path) when the objective uses LPIPS.
+    pub lpips_weights: Option<String>,
+    /// The device the job asks for (a worker started with `--device` keeps its own).
+    pub device: DeviceChoice,
+    /// The model.
+    pub model: XFactorConfig,
+    /// The optimizer and the stage's objective.
+    pub train: TrainConfig,
+    /// The data and how it is sampled.
+    pub data: DataSpec,
+    /// Secrets of the ring streams; `None` in a group of one.
+    pub ring: Option<RingSecrets>,
+}
+
+impl TrainWork {
+    /// Ranks in the group.
+    pub fn world_size(&self) -> usize {
+        self.peers.len()
+    }
+}
+
+/// Where a rank's trainer starts from.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum TrainStart {
+    /// Resume exactly from a committed checkpoint of this stage (URI prefix): weights,
+    /// optimizer state and step.
+    Resume(String),
+    /// Start the stage at step 0 from another checkpoint's weights (stage 2 from stage 1's
+    /// final).
+    InitWeights(String),
+    /// A fresh initialisation from the job's seed.
+    Fresh,
+}
+
+/// Secrets a rank's ring streams carry, fresh for every generation.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct RingSecrets {
+    /// This rank's, for its stream to the right neighbour.
+    pub own: String,
+    /// The left neighbour's, which this rank demands of the stream it accepts.
+    pub left: String,
+}
+
+/// The evaluation of stage 2's final weights, on a group of one.
+#[derive(Debug, Clone, PartialEq)]
+pub struct EvaluateWork {
+    /// The committed checkpoint to evaluate.
+    pub weights: String,
+    /// Where the report goes (URI prefix).
+    pub report_prefix: String,
+    /// The device the job asks for.
+    pub device: DeviceChoice,
+    /// The model the weights are.
+    pub model: XFactorConfig,
+    /// What to evaluate and how.
+    pub spec: EvaluationSpec,
+}
+
+/// A worker's report that its part of a generation failed.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct GenerationFailure {
+    /// The error, as the worker logged it.
+    pub reason: String,
+    /// Whose fault it was, which decides what the coordinator does.
+    pub cause: FailureCause,
+}
+
+/// Whose fault a failed generation was, as far as the failing worker can tell.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum FailureCause {
+    /// The reporting worker's own (its data, its device, its disk): it is blamed.
+    Worker,
+    /// The peer at this rank timed out, broke its stream or sent a bad chunk: it is blamed.
+    Peer {
+        /// The suspect's rank.
+        rank: usize,
+    },
+    /// The object store failed after its retries: no worker is blamed, and the group re-forms
+    /// after a back-off of the store's own.
+    Store,
+    /// A committed checkpoint does not verify: the phase falls back to the commit before it.
+    CorruptCheckpoint {
+        /// Where it is.
+        location: String,
+    },
+}

@@ -1,0 +1,47 @@
+//! What every generation of a worker shares and how a generation ends: the types the
+//! generation layers (`training`, `evaluate`) take and return, owned here so that those layers
+//! and the daemon that drives them import this leaf rather than each other.
+
+use tokio_util::sync::CancellationToken;
+
+use crate::collective::{Link, Mailbox};
+use crate::options::WorkerOptions;
+use crate::progress::Progress;
+
+/// How a generation ended for this worker.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Ending {
+    /// The stage (or this generation's part of it) is done.
+    Done,
+    /// SIGTERM arrived; the last step finished cleanly and nothing is half-committed.
+    Stopping,
+    /// The coordinator suspends the job: this worker's part is committed (rank 0) or needs
+    /// nothing more (the others); it exits without leaving, so the generation stays whole
+    /// until the commit is in.
+    Suspended,
+}
+
+/// What every generation of this worker shares.
+#[derive(Clone, Copy)]
+pub struct WorkerContext<'a> {
+    /// How the worker was started.
+    pub options: &'a WorkerOptions,
+    /// How to reach peers.
+    pub link: &'a Link,
+    /// Chunks from the left neighbour.
+    pub mailbox: &'a Mailbox,
+    /// Shared with the heartbeat task.
+    pub progress: &'a Progress,
+    /// Cancelled on SIGTERM.
+    pub shutdown: &'a CancellationToken,
+}
+
+impl WorkerContext<'_> {
+    /// This worker's scratch directory (per registration, so two workers on one host never
+    /// share one).
+    pub fn scratch(&self) -> std::path::PathBuf {
+        self.options
+            .scratch
+            .join(format!("worker-{}", self.progress.worker_id()))
+    }
+}

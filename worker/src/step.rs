@@ -1,0 +1,213 @@
+//! One optimizer step of this worker: every replica's gradients of its slice, summed across the
+//! worker's replicas, then across hosts by the ring, then applied to every replica. The loss
+//! and its terms ride at the end of the same buffer, so one all-reduce carries them all.
+//!
+//! The replicas of one host come as a list, so a worker driving several devices adds
+//! replicas, not code paths. Every replica holds the same weights before a step and receives
+//! the same summed gradients, so they stay identical.
+
+use data::BatchSource;
+use proto::v1::Activity;
+use tokio::runtime::Runtime;
+use trainer_core::flat::{LayoutError, flatten_gradients, unflatten_gradients};
+use trainer_core::trainer::{StepMetrics, TrainError, Trainer};
+
+use crate::collective::{CollectiveError, Ring};
+use crate::progress::Progress;
+
+/// One model replica of this worker with its slice of the rank's samples each step.
+pub struct Replica {
+    /// The model, its optimizer state and its step.
+    pub trainer: Trainer,
+    /// The first global sample of its slice.
+    pub first: u64,
+    /// Samples in its slice.
+    pub count: usize,
+}
+
+/// What one step measured.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct StepFigures {
+    /// The optimizer's figures (of the first replica; all replicas apply the same update).
+    pub metrics: StepMetrics,
+    /// The L1 term of the global batch's loss.
+    pub l1: f32,
+    /// The LPIPS term (NaN when the stage trains without it).
+    pub lpips: f32,
+    /// Seconds in the ring all-reduce.
+    pub allreduce_s: f64,
+    /// Bytes of the all-reduced buffer.
+    pub reduced_bytes: usize,
+}
+
+/// Why a step failed. The model was not touched when it failed before the update.
+#[derive(Debug, thiserror::Error)]
+pub enum StepError {
+    /// A replica's forward or backward pass failed (its data, its device).
+    #[error("gradients of step {step}")]
+    Gradients {
+        /// The step.
+        step: u64,
+        /// What failed.
+        #[source]
+        source: TrainError,
+    },
+    /// The ring all-reduce failed; the error names the peer at fault, if any.
+    #[error("all-reduce of step {step}")]
+    AllReduce {
+        /// The step.
+        step: u64,
+        /// What failed.
+        #[source]
+        source: CollectiveError,
+    },
+    /// The summed buffer did not fit the model (replicas of different models).
+    #[error("the reduced gradients of step {step} do not fit the model")]
+    Layout {
+        /// The step.
+        step: u64,
+        /// The mismatch.
+        #[source]
+        source: LayoutError,
+    },
+}
+
+/// Values appended to the gradients: the loss, its L1 and its LPIPS term.
+const LOSS_VALUES: usize = 3;
+
+/// Runs steps on a worker's replicas through its ring.
+pub struct Stepper {
+    ring: Option<Ring>,
+    /// Fault drill: from this step on, the reduced gradients are perturbed.
+    diverge_from_step: Option<u64>,
+}
+
+impl Stepper {
+    /// A stepper for `ring`; `diverge_from_step` arms the silent-accelerator drill.
+    pub fn new(ring: Ring, diverge_from_step: Option<u64>) -> Self {
+        Self {
+            ring: Some(ring),
+            diverge_from_step,
+        }
+    }
+
+    /// One optimizer step on every replica; they must all be at the same step. `progress`
+    /// tells the heartbeats what the worker is doing (computing, then in the all-reduce),
+    /// which is how the coordinator tells a stuck worker from one waiting for it.
+    pub fn step(
+        &mut self,
+        runtime: &Runtime,
+        replicas: &mut [Replica],
+        source: &dyn BatchSource,
+        progress: &Progress,
+    ) -> Result<StepFigures, StepError> {
+        let step = replicas.first().map_or(0, |r| r.trainer.step());
+        progress.doing(Activity::Computing);
+        let local = local_sum(replicas, source, step)?;
+        progress.doing(Activity::Allreduce);
+        let ring = self.ring.take().ok_or(StepError::AllReduce {
+            step,
+            source: CollectiveError::Aborted("an earlier all-reduce lost the ring".into()),
+        })?;
+        let (ring, mut flat, reduced) = ring
+            .all_reduce_on(runtime, local)
+            .map_err(|source| StepError::AllReduce { step, source })?;
+        self.ring = Some(ring);
+        let reduced_bytes = flat.len() * std::mem::size_of::<f32>();
+        let [loss, l1, lpips] = split_losses(&mut flat);
+        if self.diverge_from_step.is_some_and(|from| step >= from)
+            && let Some(first) = flat.first_mut()
+        {
+            *first += 1.0;
+            tracing::warn!(
+                step,
+                "fault drill: this worker's reduced gradients perturbed"
+            );
+        }
+        let mut metrics = None;
+        for replica in replicas.iter_mut() {
+            let grads = unflatten_gradients(replica.trainer.model(), &flat)
+                .map_err(|source| StepError::Layout { step, source })?;
+            let applied = replica.trainer.apply_gradients(&grads, loss);
+            metrics.get_or_insert(applied);
+        }
+        Ok(StepFigures {
+            metrics: metrics.unwrap_or(StepMetrics {
+                step,
+                loss,
+                learning_rate: 0.0,
+                grad_norm: 0.0,
+                applied: false,
+            }),
+            l1,
+            lpips,
+            allreduce_s: reduced.seconds,
+            reduced_bytes,
+        })
+    }
+}
+
+/// The replicas' gradients and loss terms of their slices, summed into one flat buffer with
+/// the three loss values at its end.
+fn local_sum(
+    replicas: &[Replica],
+    source: &dyn BatchSource,
+    step: u64,
+) -> Result<Vec<f32>, StepError> {
+    let mut sum: Vec<f32> = Vec::new();
+    for replica in replicas {
+        let (loss, grads) = replica
+            .trainer
+            .slice_gradients(source, replica.first, replica.count)
+            .map_err(|source| StepError::Gradients { step, source })?;
+        let mut flat = flatten_gradients(replica.trainer.model(), &grads);
+        flat.extend([loss.total, loss.l1, loss.lpips]);
+        add_into(&mut sum, &flat);
+    }
+    Ok(sum)
+}
+
+/// `sum += values`, element-wise; an empty `sum` takes `values` as they are.
+fn add_into(sum: &mut Vec<f32>, values: &[f32]) {
+    if sum.is_empty() {
+        sum.extend_from_slice(values);
+    } else {
+        for (total, value) in sum.iter_mut().zip(values) {
+            *total += value;
+        }
+    }
+}
+
+/// Takes the loss, L1 and LPIPS values off the end of a reduced buffer; NaN where the buffer
+/// is shorter than they are.
+fn split_losses(flat: &mut Vec<f32>) -> [f32; LOSS_VALUES] {
+    let mut values = [f32::NAN; LOSS_VALUES];
+    for value in values.iter_mut().rev() {
+        *value = flat.pop().unwrap_or(f32::NAN);
+    }
+    values
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn replicas_gradients_add_up_element_wise() {
+        let mut sum = Vec::new();
+        add_into(&mut sum, &[1.0, 2.0, 0.5]);
+        add_into(&mut sum, &[0.25, -2.0, 0.5]);
+        assert_eq!(sum, [1.25, 0.0, 1.0]);
+    }
+
+    #[test]
+    fn the_loss_terms_come_off_the_end_in_order() {
+        let mut flat = vec![0.1, 0.2, 3.0, 1.0, 2.0];
+        assert_eq!(split_losses(&mut flat), [3.0, 1.0, 2.0]);
+        assert_eq!(flat, [0.1, 0.2]);
+        let mut short = vec![7.0];
+        let [loss, l1, lpips] = split_losses(&mut short);
+        assert!(loss.is_nan() && l1.is_nan());
+        assert_eq!(lpips, 7.0);
+    }
+}
