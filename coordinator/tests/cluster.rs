@@ -12,6 +12,8 @@ use common::{
 };
 use coordinator::local::free_port;
 use serde_json::Value;
+use tempfile::TempDir;
+use trainer_core::flax::FlaxTensors;
 
 #[test]
 fn two_workers_run_both_stages_in_lockstep_then_one_evaluates() {
@@ -86,21 +88,25 @@ fn two_workers_run_both_stages_in_lockstep_then_one_evaluates() {
     assert!(figures >= 4, "{figures} figures");
 }
 
-#[test]
-fn two_workers_of_four_equal_one_worker_of_eight() {
-    let run = |workers: usize, micro: u64| {
-        let dir = tempfile::tempdir().unwrap();
-        let mut job = small_job(dir.path(), workers);
-        job.in_memory = true;
-        job.micro_batch = micro;
-        job.stage1_steps = 2;
-        job.stage2_steps = 1;
-        let report = Running::start(job).finish(Duration::from_secs(300));
-        let final_location = commits(&report, 2).last().unwrap().1.clone();
-        (report, load_weights(&final_location), dir)
-    };
-    let (two, two_weights, _a) = run(2, 4);
-    let (one, one_weights, _b) = run(1, 8);
+/// A small in-memory job of `workers` processes with `micro` samples per micro-batch, each
+/// worker started with `--devices devices`; its report, final weights and folder.
+fn train_small(workers: usize, micro: u64, devices: usize) -> (Value, FlaxTensors, TempDir) {
+    let dir = tempfile::tempdir().unwrap();
+    let mut job = small_job(dir.path(), workers);
+    job.in_memory = true;
+    job.micro_batch = micro;
+    job.stage1_steps = 2;
+    job.stage2_steps = 1;
+    job.worker_args = vec![vec!["--devices".into(), devices.to_string()]; workers];
+    let report = Running::start(job).finish(Duration::from_secs(300));
+    let final_location = commits(&report, 2).last().unwrap().1.clone();
+    let weights = load_weights(&final_location);
+    (report, weights, dir)
+}
+
+/// Two runs with the same global batch, cut differently, trained alike: every step's loss to
+/// 1e-5, and the final weights as close as float32 summation order allows.
+fn assert_trained_alike(a: (&Value, &FlaxTensors), b: (&Value, &FlaxTensors)) {
     let losses = |report: &Value| -> Vec<f64> {
         report["steps"]
             .as_array()
@@ -109,18 +115,15 @@ fn two_workers_of_four_equal_one_worker_of_eight() {
             .map(|s| s["loss"].as_f64().unwrap())
             .collect()
     };
-    for (a, b) in losses(&two).iter().zip(losses(&one)) {
-        assert!((a - b).abs() <= 1e-5 * b.abs().max(1.0), "loss {a} vs {b}");
+    for (x, y) in losses(a.0).iter().zip(losses(b.0)) {
+        assert!((x - y).abs() <= 1e-5 * y.abs().max(1.0), "loss {x} vs {y}");
     }
     let (mut worst, mut total, mut count) = (0.0f32, 0.0f64, 0usize);
-    for name in one_weights.names_with_prefix("") {
-        let (a, b) = (
-            two_weights.get(name).unwrap(),
-            one_weights.get(name).unwrap(),
-        );
-        for (x, y) in a.values.iter().zip(&b.values) {
-            worst = worst.max((x - y).abs());
-            total += f64::from((x - y).abs());
+    for name in b.1.names_with_prefix("") {
+        let (x, y) = (a.1.get(name).unwrap(), b.1.get(name).unwrap());
+        for (p, q) in x.values.iter().zip(&y.values) {
+            worst = worst.max((p - q).abs());
+            total += f64::from((p - q).abs());
             count += 1;
         }
     }
@@ -133,6 +136,20 @@ fn two_workers_of_four_equal_one_worker_of_eight() {
     println!("weights differ by up to {worst:e}, {mean:e} on average over {count}");
     assert!(worst < 5e-5, "weights differ by up to {worst}");
     assert!(mean < 1e-7, "weights differ by {mean} on average");
+}
+
+#[test]
+fn two_workers_of_four_equal_one_worker_of_eight() {
+    let (two, two_weights, _a) = train_small(2, 4, 1);
+    let (one, one_weights, _b) = train_small(1, 8, 1);
+    assert_trained_alike((&two, &two_weights), (&one, &one_weights));
+}
+
+#[test]
+fn two_workers_of_two_devices_equal_one_worker_of_four_devices() {
+    let (two, two_weights, _a) = train_small(2, 2, 2);
+    let (one, one_weights, _b) = train_small(1, 2, 4);
+    assert_trained_alike((&two, &two_weights), (&one, &one_weights));
 }
 
 fn kill_one_mid_stage(workers: usize, minimum: usize) {

@@ -15,6 +15,6 @@ pub mod phase;
 pub mod train;
 pub mod work;
 
-pub use device::{DeviceChoice, UnknownDevice};
+pub use device::{BadDeviceSet, DeviceChoice, DeviceSet, UnknownDevice};
 pub use model::XFactorConfig;
 pub use phase::Phase;

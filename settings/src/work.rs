@@ -6,7 +6,7 @@
 use crate::data::DataSpec;
 use crate::evaluation::EvaluationSpec;
 use crate::train::TrainConfig;
-use crate::{DeviceChoice, Phase, XFactorConfig};
+use crate::{DeviceChoice, DeviceSet, Phase, XFactorConfig};
 
 /// One assignment: the generation it belongs to and what to do in it.
 #[derive(Debug, Clone, PartialEq)]
@@ -59,6 +59,8 @@ pub struct TrainWork {
     pub data: DataSpec,
     /// Secrets of the ring streams; `None` in a group of one.
     pub ring: Option<RingSecrets>,
+    /// Which of its host's devices the worker drives (the job's; `--devices` overrides).
+    pub devices: DeviceSet,
 }
 
 impl TrainWork {

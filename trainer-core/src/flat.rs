@@ -98,6 +98,20 @@ pub fn unflatten_gradients<M: Module>(
     Ok(unflatten.out)
 }
 
+/// Every float parameter's values appended in module order: what two replicas compare to a
+/// tolerance, where [`parameter_checksum`] tells only bitwise equality.
+pub fn flatten_parameters<M: Module>(module: &M) -> Vec<f32> {
+    struct Flatten(Vec<f32>);
+    impl ModuleVisitor for Flatten {
+        fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
+            self.0.extend(param.val().into_data().iter::<f32>());
+        }
+    }
+    let mut flatten = Flatten(Vec::with_capacity(parameter_count(module)));
+    module.visit(&mut flatten);
+    flatten.0
+}
+
 /// CRC-32 of every parameter's little-endian `f32` bytes in module order: equal on two
 /// processes exactly when their parameters are bitwise equal (up to CRC collisions).
 pub fn parameter_checksum<M: Module>(module: &M) -> u32 {

@@ -19,5 +19,6 @@ pub mod parity;
 pub mod sharded;
 pub mod trainer;
 
+pub use burn::tensor::Device;
 pub use model::XFactor;
 pub use settings::XFactorConfig;

@@ -17,13 +17,18 @@ use crate::context::{Ending, WorkerContext};
 use crate::options::{WorkerOptions, WorkerTls};
 use crate::progress::Progress;
 use crate::session::{AwaitError, Client, await_assignment, connect, heartbeats, leave, register};
-use crate::{evaluate, failure, health, metrics, shutdown, training};
+use crate::{device, evaluate, failure, health, metrics, shutdown, training};
 
 /// Consecutive generations that may fail before the worker gives up.
 const MAX_CONSECUTIVE_FAILURES: u32 = 8;
 
 /// Runs the worker until the job finishes. Blocking; owns its async runtime.
 pub fn run(options: WorkerOptions) -> anyhow::Result<()> {
+    let progress = Arc::new(Progress::new());
+    if let Some(choice) = options.device {
+        // A device this host lacks is refused before the worker reaches for anything else.
+        device::resolve(choice, &progress.metrics)?;
+    }
     // One I/O thread: RPCs, heartbeats and the collective streams are light, and the ring
     // all-reduce runs fastest when its chunks never change threads. Training uses its own.
     let runtime = tokio::runtime::Builder::new_multi_thread()
@@ -49,7 +54,6 @@ pub fn run(options: WorkerOptions) -> anyhow::Result<()> {
         &options.token,
         options.tls.as_ref(),
     ))?;
-    let progress = Arc::new(Progress::new());
     if let Some(address) = &options.metrics_address {
         runtime.block_on(telemetry::http::serve(
             address,

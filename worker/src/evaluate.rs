@@ -21,7 +21,8 @@ pub fn evaluate(
     generation: u64,
     work: &EvaluateWork,
 ) -> anyhow::Result<Ending> {
-    let backend = device::backend(context.options.device.unwrap_or(work.device));
+    let choice = context.options.device.unwrap_or(work.device);
+    let backend = device::resolve(choice, &context.progress.metrics)?.backend;
     let scratch = context.scratch();
     let weights_dir = scratch.join("evaluate-weights");
     let report_dir = scratch.join("evaluation");

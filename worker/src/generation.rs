@@ -2,15 +2,15 @@
 //! started from another checkpoint's weights, or fresh), this rank's data stream, and its
 //! place in the ring. What it returns is everything the step loop needs.
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
 
 use anyhow::Context;
 use data::prefetch::{Prefetched, Schedule};
 use data::spec::{RankSource, rank_slice};
 use settings::work::{TrainStart, TrainWork};
 use tokio::runtime::Runtime;
+use trainer_core::Device;
 use trainer_core::XFactor;
-use trainer_core::backend::BackendChoice;
 use trainer_core::lpips::Lpips;
 use trainer_core::trainer::Trainer;
 
@@ -32,7 +32,8 @@ pub struct Prepared {
     pub samples_per_step: usize,
 }
 
-/// Builds or resumes the trainer, opens the rank's data and joins the ring of `generation`.
+/// Builds or resumes one trainer per device of this worker, opens the rank's data and joins
+/// the ring of `generation`.
 pub fn prepare(
     runtime: &Runtime,
     context: &WorkerContext<'_>,
@@ -46,26 +47,39 @@ pub fn prepare(
         .threads
         .or((train.shards > 0).then_some(train.shards))
         .unwrap_or(cores);
-    let backend = device::backend(context.options.device.unwrap_or(work.device));
-    let threads = train.shards;
-    let trainer = build_trainer(runtime, context, work, train, backend)?;
+    let choice = context.options.device.unwrap_or(work.device);
+    let backend = device::resolve(choice, &context.progress.metrics)?.backend;
+    let devices = backend.devices(context.options.devices.as_ref().unwrap_or(&work.devices))?;
+    let start = fetch_start(runtime, context, work)?;
+    let (first, count) = rank_slice(work.train.global_batch, work.world_size(), work.rank);
+    let micro_batch = work.train.micro_batch.max(1);
+    let slices = replica_slices(first, count, micro_batch, devices.len());
+    let mut replicas = Vec::with_capacity(devices.len());
+    for (device, (first, count)) in devices.into_iter().zip(slices) {
+        let trainer = build_trainer(work, train.clone(), start.as_ref(), &device.autodiff())?;
+        replicas.push(Replica {
+            trainer,
+            first,
+            count,
+        });
+    }
+    let start_step = replicas.first().map_or(0, |r| r.trainer.step());
     tracing::info!(
         backend = backend.name(),
-        threads,
-        start_step = trainer.step(),
+        replicas = replicas.len(),
+        threads = train.shards,
+        start_step,
         total_steps = work.total_steps,
         "training"
     );
-    let (first, count) = rank_slice(work.train.global_batch, work.world_size(), work.rank);
     let rank_source =
         runtime.block_on(RankSource::open(&work.data, work.world_size(), work.rank))?;
-    let shard = rank_source.shard_at(trainer.step());
+    let shard = rank_source.shard_at(start_step);
     if !shard.is_empty() {
         tracing::info!(sequences = shard.len(), "data shard of this epoch");
     }
-    let micro_batch = work.train.micro_batch.max(1);
     let schedule = Schedule {
-        start_step: trainer.step(),
+        start_step,
         first_sample: first,
         global_batch: count,
         micro_batch,
@@ -73,27 +87,61 @@ pub fn prepare(
     let source = Prefetched::new(rank_source, schedule, 2 * count.div_ceil(micro_batch), 1);
     let ring = runtime.block_on(join_ring(context, generation, work))?;
     Ok(Prepared {
-        replicas: vec![Replica {
-            trainer,
-            first,
-            count,
-        }],
+        replicas,
         source,
         ring,
         samples_per_step: count,
     })
 }
 
-/// The trainer where the assignment says it starts: a commit of this stage to resume, another
-/// checkpoint's weights, or the seed.
-fn build_trainer(
+/// The rank's samples `first .. first + count` cut into one slice per replica along
+/// micro-batch boundaries, the first replicas taking one micro-batch more when they do not
+/// divide evenly; so the replicas read the prefetched micro-batches in order, and together
+/// they compute exactly the rank's share.
+pub fn replica_slices(
+    first: u64,
+    count: usize,
+    micro_batch: usize,
+    replicas: usize,
+) -> Vec<(u64, usize)> {
+    let micro_batches = count.div_ceil(micro_batch.max(1));
+    let replicas = replicas.max(1);
+    let mut slices = Vec::with_capacity(replicas);
+    let mut start = 0;
+    for replica in 0..replicas {
+        let own = micro_batches / replicas + usize::from(replica < micro_batches % replicas);
+        let end = (start + own * micro_batch).min(count);
+        slices.push((first + start as u64, end - start));
+        start = end;
+    }
+    slices
+}
+
+/// The checkpoint the assignment starts from, downloaded once for every replica; `None`
+/// for a fresh start from the seed.
+fn fetch_start(
     runtime: &Runtime,
     context: &WorkerContext<'_>,
     work: &TrainWork,
+) -> anyhow::Result<Option<PathBuf>> {
+    let (location, folder) = match &work.start {
+        TrainStart::Resume(location) => (location, "resume"),
+        TrainStart::InitWeights(location) => (location, "init"),
+        TrainStart::Fresh => return Ok(None),
+    };
+    let dir = context.scratch().join(folder);
+    checkpoints::clear(&dir)?;
+    runtime.block_on(checkpoints::download(location, &dir))?;
+    Ok(Some(dir))
+}
+
+/// One trainer on `device`, started where `start` says.
+fn build_trainer(
+    work: &TrainWork,
     train: settings::train::TrainConfig,
-    backend: BackendChoice,
+    start: Option<&PathBuf>,
+    device: &Device,
 ) -> anyhow::Result<Trainer> {
-    let device = &backend.device().autodiff();
     let lpips = match &work.lpips_weights {
         Some(weights) => Some(
             Lpips::from_file(Path::new(weights), device)
@@ -101,20 +149,11 @@ fn build_trainer(
         ),
         None => None,
     };
-    let scratch = context.scratch();
-    match &work.start {
-        TrainStart::Resume(location) => {
-            let dir = scratch.join("resume");
-            checkpoints::clear(&dir)?;
-            runtime.block_on(checkpoints::download(location, &dir))?;
-            Trainer::resume(train, &dir, lpips, device)
-                .with_context(|| format!("resuming from {location}"))
-        }
-        TrainStart::InitWeights(location) => {
-            let dir = scratch.join("init");
-            checkpoints::clear(&dir)?;
-            runtime.block_on(checkpoints::download(location, &dir))?;
-            let trainer = Trainer::from_weights(train, &dir, lpips, device)
+    match (&work.start, start) {
+        (TrainStart::Resume(location), Some(dir)) => Trainer::resume(train, dir, lpips, device)
+            .with_context(|| format!("resuming from {location}")),
+        (TrainStart::InitWeights(location), Some(dir)) => {
+            let trainer = Trainer::from_weights(train, dir, lpips, device)
                 .with_context(|| format!("initial weights from {location}"))?;
             anyhow::ensure!(
                 *trainer.model_config() == work.model,
@@ -124,7 +163,7 @@ fn build_trainer(
             );
             Ok(trainer)
         }
-        TrainStart::Fresh => {
+        _ => {
             let model = XFactor::new(&work.model, train.seed, device)?;
             Ok(Trainer::new(
                 train,
@@ -161,4 +200,18 @@ async fn join_ring(
         context.progress.cancel.subscribe(),
     )
     .await?)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::replica_slices;
+
+    #[test]
+    fn replicas_split_the_rank_slice_along_micro_batches() {
+        assert_eq!(replica_slices(8, 8, 2, 1), [(8, 8)]);
+        assert_eq!(replica_slices(8, 8, 2, 2), [(8, 4), (12, 4)]);
+        assert_eq!(replica_slices(0, 10, 2, 3), [(0, 4), (4, 4), (8, 2)]);
+        assert_eq!(replica_slices(0, 5, 2, 2), [(0, 4), (4, 1)]);
+        assert_eq!(replica_slices(0, 2, 2, 2), [(0, 2), (2, 0)]);
+    }
 }

@@ -8,7 +8,7 @@ use anyhow::Context;
 use clap::{CommandFactory, Parser, Subcommand, ValueEnum};
 use proto::auth::TokenArgs;
 use proto::tls::TlsClientArgs;
-use settings::DeviceChoice;
+use settings::{DeviceChoice, DeviceSet};
 use telemetry::logging::LogArgs;
 use worker::bench::BenchArgs;
 use worker::{WorkerOptions, WorkerTls, run};
@@ -43,7 +43,7 @@ enum Command {
 /// The compute device a worker asks for instead of the job's.
 #[derive(Debug, Clone, Copy, ValueEnum)]
 enum Device {
-    /// The GPU when /dev/nvidiactl or /dev/kfd exists, else the CPU
+    /// A GPU when a driver reports one (wgpu), else the CPU
     Auto,
     /// burn's CPU backend
     Cpu,
@@ -74,6 +74,11 @@ struct DaemonArgs {
     /// Compute device (by default the job's)
     #[arg(long, value_enum)]
     device: Option<Device>,
+    /// Devices this worker drives, one model replica each: all of the backend's, the first
+    /// N, or indices (0,2); gradients are summed across them before the ring. The CPU is one
+    /// device; N on it runs N replicas there (by default the job's)
+    #[arg(long, value_name = "all|N|IDS")]
+    devices: Option<DeviceSet>,
     /// Threads per micro-batch (by default the job's)
     #[arg(long, value_name = "N")]
     threads: Option<usize>,
@@ -201,6 +206,7 @@ impl DaemonArgs {
                 Device::Cpu => DeviceChoice::Cpu,
                 Device::Wgpu => DeviceChoice::Wgpu,
             }),
+            devices: self.devices,
             threads: self.threads,
             name,
             expected_model_config,

@@ -11,6 +11,11 @@ use telemetry::Metric;
 use telemetry::histogram::SECONDS_BUCKETS;
 pub use telemetry::training::{GENERATION, GRAD_NORM, LEARNING_RATE, LOSS, STAGE, STEP};
 
+/// The device this worker trains on (value 1; the labels say which).
+pub const DEVICE_INFO: Metric = Metric::gauge(
+    "xfactor_device_info",
+    "The backend and adapter this worker trains on (labels backend, name).",
+);
 /// Rank in the group.
 pub const RANK: Metric = Metric::gauge("xfactor_rank", "This worker's rank in its group.");
 /// Samples per second of this worker.

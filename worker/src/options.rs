@@ -5,7 +5,7 @@
 use std::path::PathBuf;
 use std::time::Duration;
 
-use settings::{DeviceChoice, XFactorConfig};
+use settings::{DeviceChoice, DeviceSet, XFactorConfig};
 
 use crate::collective::PeerTls;
 
@@ -22,6 +22,8 @@ pub struct WorkerOptions {
     pub advertise: Option<String>,
     /// The device to train on; `None` follows the job.
     pub device: Option<DeviceChoice>,
+    /// The devices of that backend it drives, one model replica each; `None` follows the job.
+    pub devices: Option<DeviceSet>,
     /// Threads per micro-batch; `None` follows the job (0 there: every core).
     pub threads: Option<usize>,
     /// Name in logs.

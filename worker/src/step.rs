@@ -190,7 +190,18 @@ fn split_losses(flat: &mut Vec<f32>) -> [f32; LOSS_VALUES] {
 
 #[cfg(test)]
 mod tests {
+    use data::spec::RankSource;
+    use settings::data::{DataSource, DataSpec, SamplerConfig};
+    use settings::objective::Stage1Config;
+    use settings::optim::{AdamWConfig, Schedule};
+    use settings::train::{StageObjective, TrainConfig};
+    use settings::{DeviceSet, XFactorConfig};
+    use trainer_core::XFactor;
+    use trainer_core::backend::BackendChoice;
+    use trainer_core::flat::{flatten_parameters, parameter_checksum};
+
     use super::*;
+    use crate::collective::{CollectiveService, Link, RingKeys};
 
     #[test]
     fn replicas_gradients_add_up_element_wise() {
@@ -209,5 +220,128 @@ mod tests {
         let [loss, l1, lpips] = split_losses(&mut short);
         assert!(loss.is_nan() && l1.is_nan());
         assert_eq!(lpips, 7.0);
+    }
+
+    const GLOBAL_BATCH: usize = 4;
+
+    fn train_config() -> TrainConfig {
+        TrainConfig {
+            seed: 5,
+            objective: StageObjective::Stage1(Stage1Config {
+                lpips_weight: 0.0,
+                ..Stage1Config::default()
+            }),
+            global_batch: GLOBAL_BATCH,
+            micro_batch: 1,
+            shards: 1,
+            schedule: Schedule::default(),
+            optimizer: AdamWConfig::default(),
+        }
+    }
+
+    /// One trainer per device of `set` on the CPU, from the same seed, with the global batch
+    /// cut as `generation::prepare` cuts it.
+    fn replicas(set: &DeviceSet) -> Vec<Replica> {
+        let model = XFactorConfig::tiny(16);
+        let devices = BackendChoice::Cpu.devices(set).unwrap();
+        let slices = crate::generation::replica_slices(0, GLOBAL_BATCH, 1, devices.len());
+        devices
+            .into_iter()
+            .zip(slices)
+            .map(|(device, (first, count))| {
+                let device = device.autodiff();
+                let xfactor = XFactor::new(&model, 5, &device).unwrap();
+                let trainer =
+                    Trainer::new(train_config(), model.clone(), xfactor, None, &device).unwrap();
+                Replica {
+                    trainer,
+                    first,
+                    count,
+                }
+            })
+            .collect()
+    }
+
+    /// Parameters of every replica after `steps` steps, through a ring of one.
+    fn train(set: &DeviceSet, steps: usize) -> (Vec<Vec<f32>>, Vec<u32>) {
+        let runtime = tokio::runtime::Runtime::new().unwrap();
+        let spec = DataSpec {
+            source: DataSource::Generated {
+                scenes: 2,
+                trajectories: 2,
+                frames: 6,
+            },
+            sampler: SamplerConfig::stage1(),
+            image_size: 16,
+            seed: 5,
+            global_batch: GLOBAL_BATCH,
+        };
+        let source = runtime.block_on(RankSource::open(&spec, 1, 0)).unwrap();
+        let link = Link {
+            token: "token".into(),
+            timeout: std::time::Duration::from_secs(5),
+            tls: None,
+        };
+        let mailbox = CollectiveService::default().mailbox();
+        let (_cancel, cancelled) = tokio::sync::watch::channel(false);
+        let peers = ["127.0.0.1:1".to_string()];
+        let ring = runtime
+            .block_on(Ring::connect(
+                &mailbox,
+                0,
+                &peers,
+                1,
+                &RingKeys::default(),
+                &link,
+                cancelled,
+            ))
+            .unwrap();
+        let mut stepper = Stepper::new(ring, None);
+        let mut replicas = replicas(set);
+        let progress = Progress::new();
+        for _ in 0..steps {
+            stepper
+                .step(&runtime, &mut replicas, &source, &progress)
+                .unwrap();
+        }
+        let parameters = replicas
+            .iter()
+            .map(|r| flatten_parameters(r.trainer.model()))
+            .collect();
+        let checksums = replicas
+            .iter()
+            .map(|r| parameter_checksum(r.trainer.model()))
+            .collect();
+        (parameters, checksums)
+    }
+
+    #[test]
+    fn two_replicas_train_to_the_weights_of_one_with_the_same_global_batch() {
+        let steps = 3;
+        let (single, _) = train(&DeviceSet::Count(1), steps);
+        let (pair, checksums) = train(&DeviceSet::Count(2), steps);
+        assert_eq!(
+            checksums[0], checksums[1],
+            "the replicas stay bitwise identical"
+        );
+        let largest = single[0]
+            .iter()
+            .zip(&pair[0])
+            .map(|(a, b)| (a - b).abs())
+            .fold(0.0f32, f32::max);
+        println!("replicas=2 steps={steps} max_abs_difference={largest:e}");
+        assert!(largest <= 1e-5, "largest difference {largest:e}");
+        assert_ne!(
+            single[0],
+            flatten_parameters(
+                &XFactor::new(
+                    &XFactorConfig::tiny(16),
+                    5,
+                    &BackendChoice::Cpu.device().autodiff()
+                )
+                .unwrap()
+            ),
+            "training moved the weights"
+        );
     }
 }

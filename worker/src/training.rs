@@ -68,8 +68,11 @@ pub fn train_generation(
             .step
             .store(done, std::sync::atomic::Ordering::SeqCst);
         context.progress.doing(Activity::Idle);
-        let checksum = checksum_due(done, work.checksum_every, work.total_steps)
-            .then(|| parameter_checksum(replicas[0].trainer.model()));
+        let checksum = if checksum_due(done, work.checksum_every, work.total_steps) {
+            Some(replica_checksum(&replicas, done)?)
+        } else {
+            None
+        };
         let account = StepAccount {
             figures,
             samples: samples_per_step,
@@ -86,6 +89,23 @@ pub fn train_generation(
         {
             return Ok(ending);
         }
+    }
+}
+
+/// The parameter checksum of this worker's replicas after step `done`; they received the
+/// same summed gradients, so they must be bitwise equal, and a replica that is not (a faulty
+/// device) fails the generation, which re-forms from the last commit.
+fn replica_checksum(replicas: &[crate::step::Replica], done: u64) -> anyhow::Result<u32> {
+    let checksums: Vec<u32> = replicas
+        .iter()
+        .map(|replica| parameter_checksum(replica.trainer.model()))
+        .collect();
+    match checksums.split_first() {
+        Some((&first, rest)) if rest.iter().all(|&other| other == first) => Ok(first),
+        Some(_) => bail!(
+            "this worker's replicas diverged after step {done}: parameter checksums {checksums:08x?}"
+        ),
+        None => bail!("no replica to checksum"),
     }
 }
 

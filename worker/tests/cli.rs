@@ -19,6 +19,7 @@ fn help_lists_every_flag_with_its_default() {
             ("--listen", Some("127.0.0.1:0")),
             ("--advertise", None),
             ("--device", None),
+            ("--devices", None),
             ("--threads", None),
             ("--name", None),
             ("--model-config", None),
@@ -60,6 +61,7 @@ fn bad_values_are_refused_naming_the_flag() {
             "--collective-timeout-s",
         ),
         (&["--device", "tpu"][..], "--device"),
+        (&["--devices", "0,0"][..], "--devices"),
         (&["--threads", "many"][..], "--threads"),
         (&["--log-format", "xml"][..], "--log-format"),
         (
@@ -78,6 +80,21 @@ fn bad_values_are_refused_naming_the_flag() {
     ] {
         help::assert_refused(WORKER, &[&bench[..], bad].concat(), flag);
     }
+}
+
+#[test]
+fn wgpu_on_a_host_without_an_adapter_is_refused_before_the_worker_joins() {
+    // No Vulkan driver: the loader is pointed at an ICD file that does not exist.
+    let output = std::process::Command::new(WORKER)
+        .args(["--coordinator", "http://127.0.0.1:1", "--token", "t"])
+        .args(["--device", "wgpu", "--no-slurm"])
+        .env("VK_ICD_FILENAMES", "/nonexistent/icd.json")
+        .env("VK_DRIVER_FILES", "/nonexistent/icd.json")
+        .output()
+        .unwrap();
+    let said = String::from_utf8_lossy(&output.stderr);
+    assert_eq!(output.status.code(), Some(1), "{said}");
+    assert!(said.contains("no Vulkan, Metal or DX12 adapter"), "{said}");
 }
 
 #[test]

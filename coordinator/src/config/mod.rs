@@ -10,7 +10,7 @@ use settings::evaluation::EvaluationSpec;
 use settings::model::{ConfigError as ModelError, PoseConditioning};
 use settings::objective::{ObjectiveSettings, ObjectiveVariant, Stage1Config, Stage2Config};
 use settings::optim::{AdamWConfig, Schedule};
-use settings::{Phase, XFactorConfig};
+use settings::{DeviceSet, Phase, XFactorConfig};
 
 mod checks;
 mod model;
@@ -352,6 +352,9 @@ pub struct WorkersConfig {
     pub minimum: Positive,
     /// Default device of workers (a worker's `--device` overrides it).
     pub device: DeviceChoice,
+    /// Which of a host's devices each worker drives, one model replica each: `all`, a count,
+    /// or a list of indices (a worker's `--devices` overrides it).
+    pub devices: DeviceSet,
     /// Threads per worker for each micro-batch (0: every core of its host).
     pub threads: u64,
     /// Seconds between heartbeats.
@@ -378,6 +381,7 @@ impl Default for WorkersConfig {
             expected: Positive(2),
             minimum: Positive(1),
             device: DeviceChoice::Auto,
+            devices: DeviceSet::All,
             threads: 0,
             heartbeat_interval_s: NonNegative(0.5),
             heartbeat_timeout_s: NonNegative(5.0),

@@ -1,7 +1,7 @@
 //! The typed assignments a group's members receive: what to train or evaluate, from where, and
 //! with which settings.
 
-use proto::convert::{device_to_wire, phase_to_wire};
+use proto::convert::{device_to_wire, devices_to_wire, phase_to_wire};
 use proto::v1::{Assignment, EvaluateAssignment, Finish, TrainAssignment, assignment::Work};
 use settings::Phase;
 
@@ -63,6 +63,7 @@ pub fn train(
             // Drawn by the service, which holds the randomness this pure state does not.
             ring_secret: String::new(),
             left_ring_secret: String::new(),
+            devices: Some(devices_to_wire(&config.workers.devices)),
         })),
     }
 }

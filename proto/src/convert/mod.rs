@@ -18,6 +18,8 @@ use crate::v1;
 
 mod work;
 
+pub use work::{devices_from_wire, devices_to_wire};
+
 /// A message that cannot become its settings type.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
 pub enum ConvertError {

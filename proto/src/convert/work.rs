@@ -3,7 +3,6 @@
 //! thing, positive intervals, both ring secrets or neither), so a worker never acts on half
 //! an assignment.
 
-use settings::Phase;
 use settings::data::DataSpec;
 use settings::evaluation::EvaluationSpec;
 use settings::train::TrainConfig;
@@ -11,6 +10,7 @@ use settings::work::{
     Assignment, EvaluateWork, FailureCause, GenerationFailure, RingSecrets, TrainStart, TrainWork,
     Work,
 };
+use settings::{DeviceSet, Phase};
 
 use super::{ConvertError, device_from_wire, device_to_wire, phase_from_wire, phase_to_wire};
 use crate::v1;
@@ -109,6 +109,7 @@ impl TryFrom<&v1::TrainAssignment> for TrainWork {
                     .ok_or(ConvertError::Missing("train.data"))?,
             )?,
             ring: ring_from_wire(&wire.ring_secret, &wire.left_ring_secret)?,
+            devices: devices_from_wire(wire.devices.as_ref())?,
         })
     }
 }
@@ -143,6 +144,7 @@ impl From<&TrainWork> for v1::TrainAssignment {
             data: Some((&work.data).into()),
             ring_secret,
             left_ring_secret,
+            devices: Some(devices_to_wire(&work.devices)),
         }
     }
 }
@@ -173,6 +175,39 @@ fn ring_from_wire(own: &str, left: &str) -> Result<Option<RingSecrets>, ConvertE
         (None, Some(_)) => Err(malformed(
             "train.ring_secret",
             "empty while train.left_ring_secret is set",
+        )),
+    }
+}
+
+/// The wire form of a device set.
+pub fn devices_to_wire(set: &DeviceSet) -> v1::DeviceSet {
+    match set {
+        DeviceSet::All => v1::DeviceSet::default(),
+        DeviceSet::Count(count) => v1::DeviceSet {
+            count: *count as u32,
+            ids: Vec::new(),
+        },
+        DeviceSet::Ids(ids) => v1::DeviceSet {
+            count: 0,
+            ids: ids.iter().map(|&id| id as u32).collect(),
+        },
+    }
+}
+
+/// A device set from the wire; absent means every device.
+pub fn devices_from_wire(wire: Option<&v1::DeviceSet>) -> Result<DeviceSet, ConvertError> {
+    let Some(wire) = wire else {
+        return Ok(DeviceSet::All);
+    };
+    match (wire.count, wire.ids.is_empty()) {
+        (0, true) => Ok(DeviceSet::All),
+        (count, true) => Ok(DeviceSet::Count(count as usize)),
+        (0, false) => Ok(DeviceSet::Ids(
+            wire.ids.iter().map(|&id| id as usize).collect(),
+        )),
+        (_, false) => Err(malformed(
+            "train.devices",
+            "a count and indices at once; a set is one of them",
         )),
     }
 }

@@ -10,7 +10,7 @@ use settings::work::{
     Assignment, EvaluateWork, FailureCause, GenerationFailure, RingSecrets, TrainStart, TrainWork,
     Work,
 };
-use settings::{DeviceChoice, Phase, XFactorConfig};
+use settings::{DeviceChoice, DeviceSet, Phase, XFactorConfig};
 
 use super::ConvertError;
 use crate::v1;
@@ -49,6 +49,7 @@ fn train_work(start: TrainStart, ring: Option<RingSecrets>) -> TrainWork {
             global_batch: 4,
         },
         ring,
+        devices: DeviceSet::Ids(vec![0, 2]),
     }
 }
 
@@ -76,6 +77,11 @@ fn every_kind_of_assignment_survives_the_wire() {
         ))),
         Work::Train(Box::new(TrainWork {
             lpips_weights: None,
+            devices: DeviceSet::All,
+            ..train_work(TrainStart::Fresh, None)
+        })),
+        Work::Train(Box::new(TrainWork {
+            devices: DeviceSet::Count(4),
             ..train_work(TrainStart::Fresh, None)
         })),
         Work::Evaluate(Box::new(EvaluateWork {
@@ -130,7 +136,7 @@ fn missing_parts_of_a_train_assignment_are_named() {
 #[test]
 fn malformed_train_assignments_are_refused_with_the_field() {
     let whole = wire(&train_work(TrainStart::Fresh, None));
-    let cases: [Breakage<v1::TrainAssignment>; 8] = [
+    let cases: [Breakage<v1::TrainAssignment>; 9] = [
         (|w| w.rank = 2, "train.rank"),
         (|w| w.world_size = 3, "train.peers"),
         (|w| w.checkpoint_every = 0, "train.checkpoint_every"),
@@ -145,6 +151,15 @@ fn malformed_train_assignments_are_refused_with_the_field() {
         ),
         (|w| w.ring_secret = "own".into(), "train.left_ring_secret"),
         (|w| w.left_ring_secret = "left".into(), "train.ring_secret"),
+        (
+            |w| {
+                w.devices = Some(v1::DeviceSet {
+                    count: 2,
+                    ids: vec![0],
+                })
+            },
+            "train.devices",
+        ),
     ];
     for (break_it, field) in cases {
         let mut broken = whole.clone();
