@@ -16,6 +16,7 @@ import json
 import math
 import os
 import sys
+import time
 
 import jax
 
@@ -478,6 +479,38 @@ def generate(name, outdir, cfg):
     return st
 
 
+def bench(cfg, steps):
+    """Times one jitted float32 stage-1 step (PoseEnc with the quadrant mask, Render from the
+    swapped poses, the L1 loss, and its gradient) as the Rust benchmark `model_step` does, and
+    prints `jax_compile_s=... jax_step_s=... jax_min_step_s=...` (the median and the fastest of
+    `steps` steps after the compiling one)."""
+
+    jax.config.update("jax_enable_x64", False)
+    rng = np.random.default_rng(cfg["seed"])
+    B, H, W, ps = cfg["batch"], cfg["height"], cfg["width"], cfg["patch_size"]
+    gh, gw = H // ps, W // ps
+    params = {k: jnp.asarray(v, jnp.float32) for k, v in init_params(cfg, rng, perturb=False).items()}
+    inp = {
+        "pair": jnp.asarray(rng.uniform(-1.0, 1.0, (B, 2, H, W, 3)), jnp.float32),
+        "pmask": jnp.asarray(np.stack([quadrant_mask(gh, gw, rng) for _ in range(B)]), jnp.int32),
+    }
+    step = jax.jit(jax.value_and_grad(lambda pp, ii: l1_loss(pp, ii, cfg)))
+    start = time.perf_counter()
+    loss, grads = step(params, inp)
+    jax.block_until_ready(grads)
+    compile_s = time.perf_counter() - start
+    assert np.isfinite(float(loss))
+    times = []
+    for _ in range(steps):
+        start = time.perf_counter()
+        jax.block_until_ready(step(params, inp))
+        times.append(time.perf_counter() - start)
+    times.sort()
+    print(f"jax_version={jax.__version__} jax_device={jax.devices()[0].platform} "
+          f"jax_compile_s={compile_s:.3f} jax_step_s={times[len(times) // 2]:.4f} "
+          f"jax_min_step_s={times[0]:.4f}")
+
+
 DEFAULTS = {
     "xfactor-deep": dict(batch=1, height=48, width=48, patch_size=8, features=48, num_heads=3,
                          num_layers=3, pose_dim=24, global_tokens=4, context_views_mv=2, seed=1),
@@ -500,6 +533,11 @@ def main(argv=None):
                   ("num_heads", 4), ("num_layers", 2), ("pose_dim", 16), ("global_tokens", 8),
                   ("context_views_mv", 3), ("seed", 0)]:
         g.add_argument("--" + k.replace("_", "-"), dest=k, type=int, default=dv)
+    b = sub.add_parser("bench", help="time a jitted float32 stage-1 step (the peer of model_step)")
+    for k, dv in [("batch", 8), ("height", 64), ("width", 64), ("patch_size", 8), ("features", 256),
+                  ("num_heads", 8), ("num_layers", 4), ("pose_dim", 64), ("global_tokens", 8),
+                  ("steps", 5), ("seed", 0)]:
+        b.add_argument("--" + k.replace("_", "-"), dest=k, type=int, default=dv)
     gd = sub.add_parser("generate-defaults", help="generate xfactor-deep and xfactor-manyviews")
     gd.add_argument("outdir")
     a = ap.parse_args(argv)
@@ -514,6 +552,12 @@ def main(argv=None):
         cfg = {k: getattr(a, k) for k in ["batch", "height", "width", "patch_size", "features", "num_heads",
                                           "num_layers", "pose_dim", "global_tokens", "context_views_mv", "seed"]}
         generate(a.name, a.outdir, cfg)
+        return 0
+    if a.cmd == "bench":
+        cfg = {k: getattr(a, k) for k in ["batch", "height", "width", "patch_size", "features", "num_heads",
+                                          "num_layers", "pose_dim", "global_tokens", "seed"]}
+        cfg["context_views_mv"] = 1
+        bench(cfg, a.steps)
         return 0
     if a.cmd == "generate-defaults":
         for name, cfg in DEFAULTS.items():

@@ -2,7 +2,14 @@
 //! benchmark configuration, and of the paper-scale model's construction and forward pass.
 //!
 //! `cargo bench -p trainer-core --bench model_step -- [--backend cpu|wgpu] [--steps N]
-//! [--batch B] [--shards S] [--skip-paper]`; shards default to the core count. Prints its configuration, then one `key=value` line.
+//! [--batch B] [--shards S] [--skip-paper] [--skip-jax]`; shards default to the core count.
+//! Prints its configuration, then one `key=value` line.
+//!
+//! In the same run it times the JAX peer (`tools/reference/xfactor_reference.py bench`: the
+//! same model and batch, jitted, float32) with the Python of `XFACTOR_JAX_PYTHON` or of
+//! `~/.cache/xfactor-dist/jax-env` (`scripts/setup-jax.sh` makes it), and prints
+//! `vs_jax=ours/theirs` (seconds per step; below 1 means ours is faster). Without that Python
+//! the line says `vs_jax=unavailable` and why.
 
 use std::time::Instant;
 
@@ -21,6 +28,7 @@ struct Options {
     steps: usize,
     batch: usize,
     paper: bool,
+    jax: bool,
 }
 
 fn parse_options() -> Options {
@@ -30,6 +38,7 @@ fn parse_options() -> Options {
         steps: 5,
         batch: 8,
         paper: true,
+        jax: true,
     };
     let mut args = std::env::args().skip(1);
     while let Some(arg) = args.next() {
@@ -53,6 +62,7 @@ fn parse_options() -> Options {
                     .expect("--shards N")
             }
             "--skip-paper" => options.paper = false,
+            "--skip-jax" => options.jax = false,
             _ => {}
         }
     }
@@ -125,6 +135,90 @@ fn stage1_step(model: &XFactor, pair: &Tensor<5>, mask: &Tensor<2>, shards: usiz
     start.elapsed().as_secs_f64()
 }
 
+/// Bytes of float32 parameters and of AdamW's two moments for `params` parameters: what every
+/// device holds whatever the backend reports.
+fn training_bytes(params: usize) -> (usize, usize) {
+    (params * 4, params * 8)
+}
+
+/// The Python that runs the JAX peer, when there is one.
+fn jax_python() -> Option<std::path::PathBuf> {
+    if let Some(python) = std::env::var_os("XFACTOR_JAX_PYTHON") {
+        return Some(python.into());
+    }
+    let cache = std::env::var_os("XDG_CACHE_HOME")
+        .map(std::path::PathBuf::from)
+        .or_else(|| {
+            std::env::var_os("HOME").map(|home| std::path::Path::new(&home).join(".cache"))
+        })?;
+    let python = cache.join("xfactor-dist/jax-env/bin/python");
+    python.exists().then_some(python)
+}
+
+/// Runs the JAX peer on `config` at `batch` for `steps` steps; its `key=value` figures, or
+/// why it did not run.
+fn jax_peer(config: &XFactorConfig, batch: usize, steps: usize) -> Result<String, String> {
+    let python =
+        jax_python().ok_or("no JAX Python: run scripts/setup-jax.sh or set XFACTOR_JAX_PYTHON")?;
+    if config.pose_layers != config.render_layers {
+        return Err("the JAX peer takes one layer count for PoseEnc and Render".into());
+    }
+    let script = concat!(
+        env!("CARGO_MANIFEST_DIR"),
+        "/../tools/reference/xfactor_reference.py"
+    );
+    let number = |value: usize| value.to_string();
+    let output = std::process::Command::new(&python)
+        .arg(script)
+        .arg("bench")
+        .args(["--batch", &number(batch), "--steps", &number(steps.max(1))])
+        .args([
+            "--height",
+            &number(config.image_size),
+            "--width",
+            &number(config.image_size),
+        ])
+        .args([
+            "--patch-size",
+            &number(config.patch_size),
+            "--features",
+            &number(config.width),
+        ])
+        .args([
+            "--num-heads",
+            &number(config.num_heads),
+            "--num-layers",
+            &number(config.pose_layers),
+        ])
+        .args([
+            "--pose-dim",
+            &number(config.pose_dim),
+            "--global-tokens",
+            &number(config.global_tokens),
+        ])
+        .output()
+        .map_err(|e| format!("{}: {e}", python.display()))?;
+    let stdout = String::from_utf8_lossy(&output.stdout);
+    let figures = stdout.lines().find(|line| line.contains("jax_step_s="));
+    match figures {
+        Some(line) if output.status.success() => Ok(line.trim().to_string()),
+        _ => Err(format!(
+            "the JAX peer failed ({}): {}",
+            output.status,
+            String::from_utf8_lossy(&output.stderr)
+                .lines()
+                .last()
+                .unwrap_or("")
+        )),
+    }
+}
+
+/// The value of `key=` in a `key=value` line.
+fn figure(line: &str, key: &str) -> Option<f64> {
+    line.split_whitespace()
+        .find_map(|pair| pair.strip_prefix(key)?.strip_prefix('=')?.parse().ok())
+}
+
 fn main() {
     let options = parse_options();
     let tuning = allocator::keep_freed_memory();
@@ -158,16 +252,31 @@ fn main() {
         .collect();
     steps.sort_by(f64::total_cmp);
     let step_s = steps[steps.len() / 2];
+    let (param_bytes, optimizer_bytes) = training_bytes(model.num_params());
     let mut line = format!(
-        "backend={} batch={} shards={} params={} warmup_step_s={warmup:.3} step_s={step_s:.3} min_step_s={:.3} pairs_per_s={:.2} vs_jax_0.99s={:.2}",
+        "backend={} batch={} shards={} params={} param_bytes={param_bytes} optimizer_bytes={optimizer_bytes} warmup_step_s={warmup:.3} step_s={step_s:.3} min_step_s={:.3} pairs_per_s={:.2}",
         options.backend.name(),
         options.batch,
         options.shards,
         model.num_params(),
         steps[0],
         options.batch as f64 / step_s,
-        step_s / 0.99,
     );
+    if options.jax {
+        match jax_peer(&config, options.batch, options.steps) {
+            Ok(figures) => {
+                let ratio = figure(&figures, "jax_step_s").map(|theirs| step_s / theirs);
+                line.push_str(&format!(" {figures}"));
+                if let Some(ratio) = ratio {
+                    line.push_str(&format!(" vs_jax={ratio:.2}"));
+                }
+            }
+            Err(why) => {
+                eprintln!("jax: {why}");
+                line.push_str(" vs_jax=unavailable");
+            }
+        }
+    }
 
     if options.paper {
         let paper = XFactorConfig::paper();
@@ -185,8 +294,9 @@ fn main() {
         let checksum = image.sum().into_scalar::<f32>();
         let forward_s = start.elapsed().as_secs_f64();
         assert!(checksum.is_finite());
+        let (param_bytes, optimizer_bytes) = training_bytes(big.num_params());
         line.push_str(&format!(
-            " paper_params={} paper_build_s={build_s:.2} paper_forward_b1_s={forward_s:.2}",
+            " paper_params={} paper_param_bytes={param_bytes} paper_optimizer_bytes={optimizer_bytes} paper_build_s={build_s:.2} paper_forward_b1_s={forward_s:.2}",
             big.num_params()
         ));
     }
