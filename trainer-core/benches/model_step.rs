@@ -29,6 +29,12 @@ struct Options {
     batch: usize,
     paper: bool,
     jax: bool,
+    /// `benchmark` or `paper`: the model whose training step is timed.
+    model: String,
+    /// `f32`, or a half precision this build cannot train in yet.
+    precision: String,
+    /// The JAX reference script (by default the checkout's).
+    reference: String,
 }
 
 fn parse_options() -> Options {
@@ -39,6 +45,13 @@ fn parse_options() -> Options {
         batch: 8,
         paper: true,
         jax: true,
+        model: "benchmark".into(),
+        precision: "f32".into(),
+        reference: concat!(
+            env!("CARGO_MANIFEST_DIR"),
+            "/../tools/reference/xfactor_reference.py"
+        )
+        .into(),
     };
     let mut args = std::env::args().skip(1);
     while let Some(arg) = args.next() {
@@ -63,6 +76,9 @@ fn parse_options() -> Options {
             }
             "--skip-paper" => options.paper = false,
             "--skip-jax" => options.jax = false,
+            "--model" => options.model = args.next().expect("--model benchmark|paper"),
+            "--precision" => options.precision = args.next().expect("--precision f32|bf16|f16"),
+            "--reference" => options.reference = args.next().expect("--reference SCRIPT.py"),
             _ => {}
         }
     }
@@ -155,18 +171,35 @@ fn jax_python() -> Option<std::path::PathBuf> {
     python.exists().then_some(python)
 }
 
+/// Why the JAX peer did not run.
+#[derive(Debug, thiserror::Error)]
+enum PeerUnavailable {
+    #[error("no JAX Python: run scripts/setup-jax.sh or set XFACTOR_JAX_PYTHON")]
+    NoPython,
+    #[error("the JAX peer takes one layer count for PoseEnc and Render")]
+    LayerCounts,
+    #[error("{python} does not start")]
+    Spawn {
+        python: String,
+        #[source]
+        source: std::io::Error,
+    },
+    #[error("the JAX peer failed ({status}): {last_line}")]
+    Failed { status: String, last_line: String },
+}
+
 /// Runs the JAX peer on `config` at `batch` for `steps` steps; its `key=value` figures, or
 /// why it did not run.
-fn jax_peer(config: &XFactorConfig, batch: usize, steps: usize) -> Result<String, String> {
-    let python =
-        jax_python().ok_or("no JAX Python: run scripts/setup-jax.sh or set XFACTOR_JAX_PYTHON")?;
+fn jax_peer(
+    script: &str,
+    config: &XFactorConfig,
+    batch: usize,
+    steps: usize,
+) -> Result<String, PeerUnavailable> {
+    let python = jax_python().ok_or(PeerUnavailable::NoPython)?;
     if config.pose_layers != config.render_layers {
-        return Err("the JAX peer takes one layer count for PoseEnc and Render".into());
+        return Err(PeerUnavailable::LayerCounts);
     }
-    let script = concat!(
-        env!("CARGO_MANIFEST_DIR"),
-        "/../tools/reference/xfactor_reference.py"
-    );
     let number = |value: usize| value.to_string();
     let output = std::process::Command::new(&python)
         .arg(script)
@@ -197,19 +230,22 @@ fn jax_peer(config: &XFactorConfig, batch: usize, steps: usize) -> Result<String
             &number(config.global_tokens),
         ])
         .output()
-        .map_err(|e| format!("{}: {e}", python.display()))?;
+        .map_err(|source| PeerUnavailable::Spawn {
+            python: python.display().to_string(),
+            source,
+        })?;
     let stdout = String::from_utf8_lossy(&output.stdout);
     let figures = stdout.lines().find(|line| line.contains("jax_step_s="));
     match figures {
         Some(line) if output.status.success() => Ok(line.trim().to_string()),
-        _ => Err(format!(
-            "the JAX peer failed ({}): {}",
-            output.status,
-            String::from_utf8_lossy(&output.stderr)
+        _ => Err(PeerUnavailable::Failed {
+            status: output.status.to_string(),
+            last_line: String::from_utf8_lossy(&output.stderr)
                 .lines()
                 .last()
                 .unwrap_or("")
-        )),
+                .to_string(),
+        }),
     }
 }
 
@@ -222,7 +258,22 @@ fn figure(line: &str, key: &str) -> Option<f64> {
 fn main() {
     let options = parse_options();
     let tuning = allocator::keep_freed_memory();
-    let config = XFactorConfig::benchmark();
+    let config = match options.model.as_str() {
+        "benchmark" => XFactorConfig::benchmark(),
+        "paper" => XFactorConfig::paper(),
+        other => panic!("--model {other}: expected benchmark or paper"),
+    };
+    if options.precision != "f32" {
+        // Half precision (SPEC "Mixed precision") is not trained by this build yet: say so in
+        // the figures instead of timing something else.
+        println!(
+            "backend={} model={} precision={} status=unsupported reason=half-precision-training-not-built",
+            options.backend.name(),
+            options.model,
+            options.precision
+        );
+        return;
+    }
     let device = options.backend.device().autodiff();
     let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
     println!(
@@ -254,8 +305,9 @@ fn main() {
     let step_s = steps[steps.len() / 2];
     let (param_bytes, optimizer_bytes) = training_bytes(model.num_params());
     let mut line = format!(
-        "backend={} batch={} shards={} params={} param_bytes={param_bytes} optimizer_bytes={optimizer_bytes} warmup_step_s={warmup:.3} step_s={step_s:.3} min_step_s={:.3} pairs_per_s={:.2}",
+        "backend={} model={} precision=f32 batch={} shards={} params={} param_bytes={param_bytes} optimizer_bytes={optimizer_bytes} warmup_step_s={warmup:.3} step_s={step_s:.3} min_step_s={:.3} pairs_per_s={:.2}",
         options.backend.name(),
+        options.model,
         options.batch,
         options.shards,
         model.num_params(),
@@ -263,7 +315,7 @@ fn main() {
         options.batch as f64 / step_s,
     );
     if options.jax {
-        match jax_peer(&config, options.batch, options.steps) {
+        match jax_peer(&options.reference, &config, options.batch, options.steps) {
             Ok(figures) => {
                 let ratio = figure(&figures, "jax_step_s").map(|theirs| step_s / theirs);
                 line.push_str(&format!(" {figures}"));

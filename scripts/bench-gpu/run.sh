@@ -1,0 +1,103 @@
+#!/usr/bin/env bash
+# Entry point of the packed GPU benchmark folder (made by scripts/bench-gpu.sh). Runs on the
+# host it is copied to, without Rust or a network: first what the host offers, then, in one
+# run, our stage-1 step per compute path for the benchmark and paper models at batch 8 and at
+# the largest batch that fits, f32 and half, each beside the JAX peer's. Every figure is a
+# `key=value` line; a path that cannot run says why and the rest go on.
+#   ./run.sh                 # STEPS=5 steps per measurement by default
+set -uo pipefail
+here="$(cd "$(dirname "$0")" && pwd)"
+bench="$here/model_step"
+steps="${STEPS:-5}"
+
+echo "host date=$(date -u +%F) kernel=$(uname -r) cores=$(nproc)"
+gpu=0
+if command -v nvidia-smi >/dev/null 2>&1 && nvidia-smi -L >/dev/null 2>&1; then
+    gpu=1
+    nvidia-smi --query-gpu=name,driver_version,memory.total --format=csv,noheader |
+        while IFS=, read -r name driver memory; do
+            echo "gpu name=\"${name}\" driver=${driver# } memory=\"${memory# }\""
+        done
+    echo "cuda version=$(nvidia-smi | sed -n 's/.*CUDA Version: *\([0-9.]*\).*/\1/p' | head -1)"
+else
+    echo "gpu none (no nvidia-smi, or it lists no GPU)"
+fi
+icd=no
+for file in /usr/share/vulkan/icd.d/nvidia_icd*.json /etc/vulkan/icd.d/nvidia_icd*.json; do
+    [ -e "$file" ] && icd="$file"
+done
+loader=no
+ldconfig -p 2>/dev/null | grep -q 'libvulkan.so.1' && loader=yes
+echo "vulkan nvidia_icd=$icd libvulkan=$loader"
+torch=$(python3 -c 'import torch; print(torch.__version__)' 2>/dev/null || echo none)
+echo "python $(python3 --version 2>&1 | tr ' ' '=') torch=$torch"
+
+jax_python=""
+for candidate in "${XFACTOR_JAX_PYTHON:-}" python3 "$HOME/.cache/xfactor-dist/jax-env/bin/python"; do
+    if [ -n "$candidate" ] && "$candidate" -c 'import jax' >/dev/null 2>&1; then
+        jax_python="$candidate"
+        break
+    fi
+done
+if [ -n "$jax_python" ]; then
+    echo "jax $("$jax_python" -c 'import jax; print("version=" + jax.__version__, "devices=" + ",".join(d.platform for d in jax.devices()))')"
+    export XFACTOR_JAX_PYTHON="$jax_python"
+else
+    echo "jax none (no Python here imports jax)"
+fi
+
+for path in vulkan cuda libtorch; do
+    case $path in
+    vulkan) why="burn's vulkan feature: cubecl 0.11.3 emits invalid SPIR-V (the README's GPUs section); not packed" ;;
+    cuda) why="burn's cuda feature downloads LLVM 23 at build time; our builders reach only package registries" ;;
+    libtorch) why="burn's tch feature links PyTorch 2.9.0's libtorch; not packed" ;;
+    esac
+    echo "path=$path status=not-built reason=\"$why\""
+done
+
+# One measurement: our step (with the JAX peer when asked), as the bench's key=value line.
+measure() { # backend model batch precision jax
+    local args=(--backend "$1" --model "$2" --batch "$3" --precision "$4" --steps "$steps"
+        --skip-paper --reference "$here/xfactor_reference.py")
+    [ "$5" = jax ] || args+=(--skip-jax)
+    timeout "${LIMIT_S:-900}" "$bench" "${args[@]}" 2>"$here/last-error.log" | grep '^backend='
+}
+
+# The largest batch that fits: doubles from 8 while a run succeeds (each in its own process,
+# so running out of memory ends only that run).
+largest_batch() { # backend model
+    local batch=8 fits=0
+    while [ "$batch" -le "${MAX_BATCH:-1024}" ] && measure "$1" "$2" "$batch" f32 no >/dev/null; do
+        fits=$batch
+        batch=$((batch * 2))
+    done
+    echo "$fits"
+}
+
+paths=(cpu wgpu)
+models=(benchmark)
+if [ "$gpu" = 1 ]; then
+    paths=(wgpu)
+    models=(benchmark paper)
+else
+    echo "model=paper status=skipped reason=\"no GPU: one step of the 305M model at 256x256 takes minutes on a CPU\""
+fi
+for model in "${models[@]}"; do
+    for path in "${paths[@]}"; do
+        batches=(8)
+        if [ "$gpu" = 1 ]; then
+            max=$(largest_batch "$path" "$model")
+            echo "backend=$path model=$model largest_batch=$max"
+            [ "$max" -gt 8 ] && batches+=("$max")
+        fi
+        for batch in "${batches[@]}"; do
+            jax=no
+            [ "$path" = "${paths[0]}" ] && jax=jax
+            measure "$path" "$model" "$batch" f32 "$jax" ||
+                echo "backend=$path model=$model batch=$batch status=failed reason=\"$(tail -1 "$here/last-error.log")\""
+            for half in bf16 f16; do
+                measure "$path" "$model" "$batch" "$half" no
+            done
+        done
+    done
+done
