@@ -33,6 +33,37 @@ pub struct XFactorConfig {
     /// of explicit cameras (the `se3_plucker` ablation).
     #[serde(default)]
     pub pose_conditioning: PoseConditioning,
+    /// Where the release's mixed precision rounds, in which half type (SPEC "Mixed precision
+    /// in the release"); `f32` (the default) rounds nowhere. Weights, gradients and the
+    /// optimizer's state stay float32 whatever this says.
+    #[serde(default)]
+    pub precision: Precision,
+}
+
+/// The float type of the release's mixed-precision points: q/k/v before attention, and
+/// Render's input pixels, RoPE table, final LayerNorm, pixel head and sigmoid. Each is
+/// rounded to this type; everything else (and every weight) stays float32.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Precision {
+    /// No rounding: the float32 model, the reference.
+    #[default]
+    F32,
+    /// bfloat16, as the release trains (`MIXED=True`).
+    Bf16,
+    /// IEEE half, for devices whose half is f16 (bf16 is storage-only on some Vulkan drivers).
+    F16,
+}
+
+impl Precision {
+    /// The YAML spelling.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::F32 => "f32",
+            Self::Bf16 => "bf16",
+            Self::F16 => "f16",
+        }
+    }
 }
 
 /// Values in the explicit camera vector PoseEnc reads for a view under
@@ -110,6 +141,7 @@ impl XFactorConfig {
             global_tokens: 32,
             round_qkv_bf16: false,
             pose_conditioning: PoseConditioning::Latent,
+            precision: Precision::F32,
         }
     }
 
@@ -127,6 +159,7 @@ impl XFactorConfig {
             global_tokens: 8,
             round_qkv_bf16: false,
             pose_conditioning: PoseConditioning::Latent,
+            precision: Precision::F32,
         }
     }
 
@@ -145,6 +178,7 @@ impl XFactorConfig {
             global_tokens: 4,
             round_qkv_bf16: false,
             pose_conditioning: PoseConditioning::Latent,
+            precision: Precision::F32,
         }
     }
 
@@ -162,6 +196,7 @@ impl XFactorConfig {
             global_tokens: 2,
             round_qkv_bf16: false,
             pose_conditioning: PoseConditioning::Latent,
+            precision: Precision::F32,
         }
     }
 

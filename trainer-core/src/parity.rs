@@ -125,6 +125,7 @@ impl FixtureConfig {
             global_tokens: self.global_tokens,
             round_qkv_bf16: false,
             pose_conditioning: settings::model::PoseConditioning::Latent,
+            precision: settings::model::Precision::F32,
         };
         config.validate()?;
         Ok(config)

@@ -9,11 +9,12 @@
 use std::path::{Path, PathBuf};
 
 use burn::optim::GradientsParams;
-use burn::tensor::Device;
+use burn::tensor::{Device, FloatDType};
 use serde::{Deserialize, Serialize};
 
 use data::{BatchSource, SampleError, Samples};
 use settings::XFactorConfig;
+use settings::model::Precision;
 use settings::train::{StageObjective, TrainConfig};
 
 use crate::checkpoint::{self, CheckpointError};
@@ -32,6 +33,14 @@ pub enum TrainError {
         "the objective weights LPIPS by {0} but no LPIPS weights were given: convert them with tools/convert_lpips_weights.py or set lpips_weight to 0"
     )]
     MissingLpips(f64),
+    /// The model's mixed precision needs a half type this device cannot compute in.
+    #[error(
+        "the model's precision {precision} needs {precision} arithmetic, which this device does not have; use precision f32, or f16 where bf16 is storage-only"
+    )]
+    Precision {
+        /// The precision asked for.
+        precision: &'static str,
+    },
     /// The batch sizes do not divide.
     #[error("global_batch {global} must be a positive multiple of micro_batch {micro}")]
     BatchSizes {
@@ -150,6 +159,22 @@ pub(crate) struct TrainerState {
     pub(crate) seed: u64,
 }
 
+/// Refuses a mixed precision whose half type `device` cannot compute in.
+fn check_precision(precision: Precision, device: &Device) -> Result<(), TrainError> {
+    let half = match precision {
+        Precision::F32 => return Ok(()),
+        Precision::Bf16 => FloatDType::BF16,
+        Precision::F16 => FloatDType::F16,
+    };
+    if device.supports_dtype(half) {
+        Ok(())
+    } else {
+        Err(TrainError::Precision {
+            precision: precision.name(),
+        })
+    }
+}
+
 /// A model, its optimiser and the step counter.
 pub struct Trainer {
     config: TrainConfig,
@@ -178,6 +203,7 @@ impl Trainer {
         if weight == 0.0 {
             tracing::info!("LPIPS weight is 0: training with the L1 loss alone");
         }
+        check_precision(model_config.precision, device)?;
         if config.micro_batch == 0
             || config.global_batch == 0
             || !config.global_batch.is_multiple_of(config.micro_batch)

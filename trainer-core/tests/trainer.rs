@@ -269,3 +269,47 @@ fn run_checkpoints_every_n_steps_and_stage2_starts_from_stage1_pose_enc() {
         parameters(stage1_trainer.model())
     );
 }
+
+/// Losses of `steps` stage-1 steps of the tiny model at `precision`, from the same weights.
+fn losses_at(precision: settings::model::Precision, steps: usize) -> Vec<f32> {
+    let device = Device::flex().autodiff();
+    let config = XFactorConfig {
+        precision,
+        ..model_config()
+    };
+    let model = XFactor::new(&config, 1, &device).unwrap();
+    let mut trainer =
+        Trainer::new(train_config(stage1(), 4, 2), config, model, None, &device).unwrap();
+    let source = SlidingCamera { views: None };
+    (0..steps)
+        .map(|_| trainer.train_step(&source).unwrap().loss)
+        .collect()
+}
+
+#[test]
+fn half_precision_trains_like_float32_within_a_percent_of_the_loss() {
+    use settings::model::Precision;
+    let steps = 8;
+    let reference = losses_at(Precision::F32, steps);
+    for half in [Precision::Bf16, Precision::F16] {
+        let losses = losses_at(half, steps);
+        let worst = losses
+            .iter()
+            .zip(&reference)
+            .map(|(h, f)| ((h - f) / f).abs())
+            .fold(0.0f32, f32::max);
+        println!(
+            "precision={} steps={steps} worst_relative_loss_difference={worst:.2e} f32_first={:.4} f32_last={:.4} half_last={:.4}",
+            half.name(),
+            reference[0],
+            reference[steps - 1],
+            losses[steps - 1]
+        );
+        assert!(worst > 0.0, "{} rounded nothing", half.name());
+        assert!(
+            worst < 0.01,
+            "{}: the loss strays by {worst:e}",
+            half.name()
+        );
+    }
+}

@@ -3,7 +3,7 @@
 
 use serde::{Deserialize, Serialize};
 use settings::XFactorConfig;
-use settings::model::{CAMERA_VECTOR_VALUES, ConfigError, PoseConditioning};
+use settings::model::{CAMERA_VECTOR_VALUES, ConfigError, PoseConditioning, Precision};
 
 /// A preset and the dimensions that replace its own.
 #[derive(Debug, Clone, PartialEq, Deserialize, Serialize)]
@@ -40,6 +40,10 @@ pub struct ModelConfig {
     /// Round q/k/v to bfloat16 as the authors' mixed precision does.
     #[serde(default)]
     pub round_qkv_bf16: bool,
+    /// The release's mixed precision (`bf16`, as it trains; `f16`; or `f32`, the default): its
+    /// rounding points in that half type, with float32 weights and optimizer state.
+    #[serde(default)]
+    pub precision: Precision,
 }
 
 /// The model sizes a job can name.
@@ -68,6 +72,7 @@ impl ModelConfig {
             pose_dim: None,
             global_tokens: None,
             round_qkv_bf16: false,
+            precision: Precision::F32,
         }
     }
 
@@ -95,6 +100,7 @@ impl ModelConfig {
             }
         }
         config.round_qkv_bf16 = self.round_qkv_bf16;
+        config.precision = self.precision;
         config.pose_conditioning = conditioning;
         if conditioning == PoseConditioning::PluckerRays && self.pose_dim.is_none() {
             config.pose_dim = CAMERA_VECTOR_VALUES;

@@ -325,3 +325,30 @@ fn se3_plucker_in_either_stage_builds_a_ray_conditioned_model() {
         "{refused}"
     );
 }
+
+#[test]
+fn precision_and_devices_are_read_and_a_bad_device_set_is_named() {
+    let yaml = GOOD.replace(
+        "  image_size: 32\n",
+        "  image_size: 32\n  precision: bf16\n",
+    ) + "workers:\n  devices: [0, 2]\n";
+    let config = ClusterConfig::from_yaml(&yaml, "cluster.yaml").unwrap();
+    assert_eq!(
+        config.model_config().unwrap().precision,
+        settings::model::Precision::Bf16
+    );
+    assert_eq!(config.workers.devices, DeviceSet::Ids(vec![0, 2]));
+    let defaults = ClusterConfig::from_yaml(GOOD, "cluster.yaml").unwrap();
+    assert_eq!(defaults.workers.devices, DeviceSet::All);
+    assert_eq!(
+        defaults.model_config().unwrap().precision,
+        settings::model::Precision::F32
+    );
+    let bad = error_of(&(GOOD.to_string() + "workers:\n  devices: [1, 1]\n"));
+    assert!(
+        bad.contains("workers") && bad.contains("not a device set") && bad.contains("line 26"),
+        "{bad}"
+    );
+    let bad = error_of(&GOOD.replace("  image_size: 32\n", "  image_size: 32\n  precision: f8\n"));
+    assert!(bad.contains("model.precision"), "{bad}");
+}

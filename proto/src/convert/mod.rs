@@ -8,14 +8,14 @@ use settings::data::{
     StoredDataset,
 };
 use settings::evaluation::{EvaluationSpec, OracleSpec, ProbeLoss, ProbeSpec, SequenceProtocol};
-use settings::model::PoseConditioning;
 use settings::objective::{AugmentConfig, ObjectiveVariant, Stage1Config, Stage2Config};
 use settings::optim::{AdamWConfig, Schedule};
 use settings::train::{StageObjective, TrainConfig};
-use settings::{DeviceChoice, Phase, XFactorConfig};
+use settings::{DeviceChoice, Phase};
 
 use crate::v1;
 
+mod model;
 mod work;
 
 pub use work::{devices_from_wire, devices_to_wire};
@@ -128,44 +128,6 @@ fn kind_from_wire(value: i32, field: &'static str) -> Result<DatasetKind, Conver
         Ok(v1::DatasetKind::Wildrgbd) => Ok(DatasetKind::Wildrgbd),
         Ok(v1::DatasetKind::Acid) => Ok(DatasetKind::Acid),
         Ok(v1::DatasetKind::Unspecified) | Err(_) => Err(ConvertError::Unknown { field, value }),
-    }
-}
-
-impl From<&XFactorConfig> for v1::ModelConfig {
-    fn from(c: &XFactorConfig) -> Self {
-        Self {
-            image_size: c.image_size as u64,
-            patch_size: c.patch_size as u64,
-            width: c.width as u64,
-            num_heads: c.num_heads as u64,
-            pose_layers: c.pose_layers as u64,
-            render_layers: c.render_layers as u64,
-            pose_dim: c.pose_dim as u64,
-            global_tokens: c.global_tokens as u64,
-            round_qkv_bf16: c.round_qkv_bf16,
-            plucker_ray_conditioning: c.pose_conditioning == PoseConditioning::PluckerRays,
-        }
-    }
-}
-
-impl From<&v1::ModelConfig> for XFactorConfig {
-    fn from(m: &v1::ModelConfig) -> Self {
-        Self {
-            image_size: size(m.image_size),
-            patch_size: size(m.patch_size),
-            width: size(m.width),
-            num_heads: size(m.num_heads),
-            pose_layers: size(m.pose_layers),
-            render_layers: size(m.render_layers),
-            pose_dim: size(m.pose_dim),
-            global_tokens: size(m.global_tokens),
-            round_qkv_bf16: m.round_qkv_bf16,
-            pose_conditioning: if m.plucker_ray_conditioning {
-                PoseConditioning::PluckerRays
-            } else {
-                PoseConditioning::Latent
-            },
-        }
     }
 }
 

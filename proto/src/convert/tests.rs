@@ -1,6 +1,8 @@
 //! Every setting survives the wire; missing parts and unknown values are named.
 
 use super::*;
+use settings::XFactorConfig;
+use settings::model::PoseConditioning;
 
 #[test]
 fn model_settings_survive_the_wire() {
@@ -8,6 +10,7 @@ fn model_settings_survive_the_wire() {
     assert_eq!(XFactorConfig::from(&v1::ModelConfig::from(&model)), model);
     let plucker = XFactorConfig {
         pose_conditioning: PoseConditioning::PluckerRays,
+        precision: settings::model::Precision::Bf16,
         pose_dim: settings::model::CAMERA_VECTOR_VALUES,
         ..XFactorConfig::tiny(16)
     };

@@ -295,6 +295,7 @@ fn infer_config(
         global_tokens: global.shape[0],
         round_qkv_bf16: false,
         pose_conditioning: settings::model::PoseConditioning::Latent,
+        precision: settings::model::Precision::F32,
     };
     config.validate().map_err(|source| ImportError::Config {
         path: path.to_path_buf(),

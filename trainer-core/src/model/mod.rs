@@ -6,6 +6,7 @@ mod layers;
 mod multiview;
 mod patch;
 mod pose_enc;
+mod precision;
 mod render;
 mod rope;
 

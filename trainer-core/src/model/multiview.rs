@@ -2,12 +2,14 @@
 //! restricted by segment ids, then a gated MLP.
 
 use burn::module::{Module, Param};
+use burn::tensor::Tensor;
 use burn::tensor::module::linear;
-use burn::tensor::{DType, Tensor};
 
 use super::init::ParamInit;
 use super::layers::{Dense, LayerNorm, LayerScale, Mlp2, RmsNorm, gelu_tanh, rms_normalize};
+use super::precision;
 use super::rope::RopeTable;
+use settings::model::Precision;
 
 /// Additive attention biases derived once per forward pass from the tokens' segment ids and
 /// shared by every layer: `0` where attention is allowed, `-inf` where segments differ. `None`
@@ -94,13 +96,19 @@ pub struct MultiViewLayer {
     pub mlp_scale: LayerScale,
     /// Heads `h`.
     pub num_heads: usize,
-    /// Whether q, k, v are rounded to bfloat16 before attention, as in the authors' release.
-    pub round_qkv_bf16: bool,
+    /// The half type q, k, v are rounded to before attention, as in the authors' release.
+    #[module(skip)]
+    pub qkv_precision: Precision,
 }
 
 impl MultiViewLayer {
     /// A freshly initialised layer of width `width`.
-    pub fn new(init: &mut ParamInit, width: usize, num_heads: usize, round_qkv_bf16: bool) -> Self {
+    pub fn new(
+        init: &mut ParamInit,
+        width: usize,
+        num_heads: usize,
+        qkv_precision: Precision,
+    ) -> Self {
         let head_dim = width / num_heads;
         Self {
             attn_norm: LayerNorm::new(init, width, false),
@@ -115,7 +123,7 @@ impl MultiViewLayer {
             mlp: Mlp2::new(init, width, 4 * width, width),
             mlp_scale: LayerScale::new(init, width),
             num_heads,
-            round_qkv_bf16,
+            qkv_precision,
         }
     }
 
@@ -183,10 +191,6 @@ impl MultiViewLayer {
     }
 
     fn round(&self, x: Tensor<4>) -> Tensor<4> {
-        if self.round_qkv_bf16 {
-            x.cast(DType::BF16).cast(DType::F32)
-        } else {
-            x
-        }
+        precision::round(x, self.qkv_precision)
     }
 }

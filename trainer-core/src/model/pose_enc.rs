@@ -7,6 +7,7 @@ use super::init::ParamInit;
 use super::layers::{Dense, LayerNorm, Mlp3, gelu_tanh};
 use super::multiview::{MultiViewLayer, SegmentMasks};
 use super::patch::patchify;
+use super::precision::qkv_precision;
 use super::rope::RopeTable;
 use settings::XFactorConfig;
 
@@ -40,7 +41,7 @@ impl PoseEnc {
             patch_embed: Dense::new(init, config.patch_values(), width, true),
             global_embed: init.normal([config.global_tokens, width], GLOBAL_EMBED_STD),
             layers: (0..config.pose_layers)
-                .map(|_| MultiViewLayer::new(init, width, config.num_heads, config.round_qkv_bf16))
+                .map(|_| MultiViewLayer::new(init, width, config.num_heads, qkv_precision(config)))
                 .collect(),
             out_norm: LayerNorm::new(init, width, true),
             pose_head: Mlp3::new(init, 2 * width, 4 * width, width, config.pose_dim),

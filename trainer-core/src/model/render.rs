@@ -9,9 +9,10 @@ use super::init::ParamInit;
 use super::layers::{LayerNorm, Mlp2, Mlp3, gelu_tanh};
 use super::multiview::{MultiViewLayer, SegmentMasks};
 use super::patch::{patchify, unpatchify};
+use super::precision::{qkv_precision, round};
 use super::rope::RopeTable;
 use settings::XFactorConfig;
-use settings::model::{CAMERA_VECTOR_VALUES, PoseConditioning};
+use settings::model::{CAMERA_VECTOR_VALUES, PoseConditioning, Precision};
 
 /// Pose latents handed to Render, one per view with the target's last. Under Plücker-ray
 /// conditioning they are camera vectors (see [`super::camera`]).
@@ -43,6 +44,10 @@ pub struct Render {
     /// Whether tokens carry latents or the Plücker rays of cameras.
     #[module(skip)]
     pub conditioning: PoseConditioning,
+    /// Where the release's mixed precision rounds Render: its input pixels, RoPE table, final
+    /// LayerNorm, pixel head and sigmoid.
+    #[module(skip)]
+    pub precision: Precision,
 }
 
 impl Render {
@@ -58,13 +63,14 @@ impl Render {
             ),
             target_lift: Mlp2::new(init, config.pose_token_values(), 4 * width, width),
             layers: (0..config.render_layers)
-                .map(|_| MultiViewLayer::new(init, width, config.num_heads, config.round_qkv_bf16))
+                .map(|_| MultiViewLayer::new(init, width, config.num_heads, qkv_precision(config)))
                 .collect(),
             out_norm: LayerNorm::new(init, width, true),
             pixel_head: Mlp3::new(init, width, 4 * width, width, config.patch_values()),
             patch_size: config.patch_size,
             num_heads: config.num_heads,
             conditioning: config.pose_conditioning,
+            precision: config.precision,
         }
     }
 
@@ -118,7 +124,10 @@ impl Render {
         };
 
         let context_patches = patchify(
-            context.reshape([b * contexts, height, width, channels]),
+            round(
+                context.reshape([b * contexts, height, width, channels]),
+                self.precision,
+            ),
             self.patch_size,
         )
         .reshape([
@@ -141,16 +150,21 @@ impl Render {
             ),
             None => SegmentMasks::unrestricted(),
         };
-        let rope = RopeTable::new(grid.0, grid.1, 0, c / self.num_heads, &device);
+        let rope =
+            RopeTable::new(grid.0, grid.1, 0, c / self.num_heads, &device).rounded(self.precision);
         for layer in &self.layers {
             z = layer.forward(z, &rope, &masks);
         }
 
         let target = z.narrow(1, contexts, 1).reshape([b, patches, c]);
-        let pixels = self
-            .pixel_head
-            .forward(gelu_tanh(self.out_norm.forward(target)));
-        let pixels = (sigmoid(pixels) - 0.5) * 2.0;
-        unpatchify(pixels, self.patch_size, height)
+        unpatchify(self.pixels(target), self.patch_size, height)
+    }
+
+    /// The target tokens `(B, T, C)` to patch pixels `(B, T, 3 p^2)` in `[-1, 1]`: final
+    /// LayerNorm, pixel head and sigmoid, each rounded where the mixed precision says.
+    fn pixels(&self, target: Tensor<3>) -> Tensor<3> {
+        let normed = round(self.out_norm.forward(target), self.precision);
+        let pixels = round(self.pixel_head.forward(gelu_tanh(normed)), self.precision);
+        (round(sigmoid(pixels), self.precision) - 0.5) * 2.0
     }
 }

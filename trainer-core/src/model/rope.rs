@@ -11,6 +11,15 @@ pub struct RopeTable {
 }
 
 impl RopeTable {
+    /// The tables rounded to `precision`'s half type (Render's RoPE table under the release's
+    /// mixed precision).
+    pub fn rounded(self, precision: settings::model::Precision) -> Self {
+        Self {
+            cos: super::precision::round(self.cos, precision),
+            sin: super::precision::round(self.sin, precision),
+        }
+    }
+
     /// Builds the tables for head size `head_dim` (a multiple of 4).
     ///
     /// Frequencies `w_i = 10000^(-i / (d/4))`, each repeated twice; a patch at `(I, J)` gets the
