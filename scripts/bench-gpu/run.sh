@@ -2,8 +2,8 @@
 # Entry point of the packed GPU benchmark folder (made by scripts/bench-gpu.sh). Runs on the
 # host it is copied to, without Rust or a network: first what the host offers, then, in one
 # run, our stage-1 step per compute path for the benchmark and paper models at batch 8 and at
-# the largest batch that fits, f32 and half, each beside the JAX peer's. Every figure is a
-# `key=value` line; a path that cannot run says why and the rest go on.
+# the largest batch that fits, in f32 (beside the JAX peer's) and in the release's mixed
+# precision (bf16, f16). Every figure is a `key=value` line; a path that cannot run says why and the rest go on.
 #   ./run.sh                 # STEPS=5 steps per measurement by default
 set -uo pipefail
 here="$(cd "$(dirname "$0")" && pwd)"

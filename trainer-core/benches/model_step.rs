@@ -16,6 +16,7 @@ use std::time::Instant;
 use burn::module::Module;
 use burn::tensor::{Device, Tensor, TensorData};
 use data::rng::Stream;
+use settings::model::Precision;
 use trainer_core::allocator;
 use trainer_core::backend::BackendChoice;
 use trainer_core::model::PoseLatents;
@@ -31,10 +32,13 @@ struct Options {
     jax: bool,
     /// `benchmark` or `paper`: the model whose training step is timed.
     model: String,
-    /// `f32`, or a half precision this build cannot train in yet.
+    /// `f32`, or `bf16`/`f16`: the release's mixed precision in that half type.
     precision: String,
     /// The JAX reference script (by default the checkout's).
     reference: String,
+    /// Recompute activations in the backward pass instead of keeping them (burn's gradient
+    /// checkpointing), trading time for memory.
+    checkpointing: bool,
 }
 
 fn parse_options() -> Options {
@@ -52,6 +56,7 @@ fn parse_options() -> Options {
             "/../tools/reference/xfactor_reference.py"
         )
         .into(),
+        checkpointing: false,
     };
     let mut args = std::env::args().skip(1);
     while let Some(arg) = args.next() {
@@ -76,6 +81,7 @@ fn parse_options() -> Options {
             }
             "--skip-paper" => options.paper = false,
             "--skip-jax" => options.jax = false,
+            "--checkpointing" => options.checkpointing = true,
             "--model" => options.model = args.next().expect("--model benchmark|paper"),
             "--precision" => options.precision = args.next().expect("--precision f32|bf16|f16"),
             "--reference" => options.reference = args.next().expect("--reference SCRIPT.py"),
@@ -155,6 +161,15 @@ fn stage1_step(model: &XFactor, pair: &Tensor<5>, mask: &Tensor<2>, shards: usiz
 /// device holds whatever the backend reports.
 fn training_bytes(params: usize) -> (usize, usize) {
     (params * 4, params * 8)
+}
+
+/// This process's peak resident memory (`VmHWM`), which on the CPU backend is its device
+/// memory; `None` where the kernel does not say.
+fn peak_rss_bytes() -> Option<u64> {
+    let status = std::fs::read_to_string("/proc/self/status").ok()?;
+    let line = status.lines().find(|line| line.starts_with("VmHWM:"))?;
+    let kib: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kib * 1024)
 }
 
 /// The Python that runs the JAX peer, when there is one.
@@ -263,18 +278,22 @@ fn main() {
         "paper" => XFactorConfig::paper(),
         other => panic!("--model {other}: expected benchmark or paper"),
     };
-    if options.precision != "f32" {
-        // Half precision (SPEC "Mixed precision") is not trained by this build yet: say so in
-        // the figures instead of timing something else.
-        println!(
-            "backend={} model={} precision={} status=unsupported reason=half-precision-training-not-built",
-            options.backend.name(),
-            options.model,
-            options.precision
-        );
-        return;
-    }
-    let device = options.backend.device().autodiff();
+    let precision = match options.precision.as_str() {
+        "f32" => Precision::F32,
+        "bf16" => Precision::Bf16,
+        "f16" => Precision::F16,
+        other => panic!("--precision {other}: expected f32, bf16 or f16"),
+    };
+    // The release's mixed precision: its rounding points in the half type, float32 weights.
+    let config = XFactorConfig {
+        precision,
+        ..config
+    };
+    let device = if options.checkpointing {
+        options.backend.device().autodiff().gradient_checkpointing()
+    } else {
+        options.backend.device().autodiff()
+    };
     let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
     println!(
         "config: backend={} threads={threads} shards={} allocator_tuned={} batch={} image={} patch={} width={} heads={} layers={}+{} pose_dim={} global_tokens={} steps={}",
@@ -305,15 +324,23 @@ fn main() {
     let step_s = steps[steps.len() / 2];
     let (param_bytes, optimizer_bytes) = training_bytes(model.num_params());
     let mut line = format!(
-        "backend={} model={} precision=f32 batch={} shards={} params={} param_bytes={param_bytes} optimizer_bytes={optimizer_bytes} warmup_step_s={warmup:.3} step_s={step_s:.3} min_step_s={:.3} pairs_per_s={:.2}",
+        "backend={} model={} precision={} batch={} shards={} params={} param_bytes={param_bytes} optimizer_bytes={optimizer_bytes} warmup_step_s={warmup:.3} step_s={step_s:.3} min_step_s={:.3} pairs_per_s={:.2}",
         options.backend.name(),
         options.model,
+        precision.name(),
         options.batch,
         options.shards,
         model.num_params(),
         steps[0],
         options.batch as f64 / step_s,
     );
+    line.push_str(&format!(
+        " checkpointing={}",
+        if options.checkpointing { "on" } else { "off" }
+    ));
+    if let (BackendChoice::Cpu, Some(peak)) = (options.backend, peak_rss_bytes()) {
+        line.push_str(&format!(" peak_host_rss_bytes={peak}"));
+    }
     if options.jax {
         match jax_peer(&options.reference, &config, options.batch, options.steps) {
             Ok(figures) => {

@@ -252,6 +252,13 @@ impl ModuleMapper for Update<'_> {
         param.map(|tensor| {
             let requires_grad = tensor.is_require_grad();
             let tracked = tensor.is_autodiff();
+            // The device's gradient checkpointing rides on each tracked tensor; the updated
+            // parameter must carry it on, or the next step mixes strategies.
+            let strategy = if tracked {
+                tensor.gradient_checkpointing_strategy()
+            } else {
+                None
+            };
             let shape = tensor.dims();
             let count = shape.iter().product::<usize>();
             let value = if tracked { tensor.inner() } else { tensor }.reshape([count]);
@@ -270,7 +277,12 @@ impl ModuleMapper for Update<'_> {
             }
             let updated = (value - step * lr).reshape(shape);
             if tracked {
-                Tensor::from_inner(updated).set_require_grad(requires_grad)
+                let tracked = Tensor::from_inner(updated);
+                let tracked = match strategy {
+                    Some(strategy) => tracked.with_gradient_checkpointing_strategy(strategy),
+                    None => tracked,
+                };
+                tracked.set_require_grad(requires_grad)
             } else {
                 updated
             }

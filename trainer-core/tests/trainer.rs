@@ -272,7 +272,11 @@ fn run_checkpoints_every_n_steps_and_stage2_starts_from_stage1_pose_enc() {
 
 /// Losses of `steps` stage-1 steps of the tiny model at `precision`, from the same weights.
 fn losses_at(precision: settings::model::Precision, steps: usize) -> Vec<f32> {
-    let device = Device::flex().autodiff();
+    losses_on(Device::flex().autodiff(), precision, steps)
+}
+
+/// [`losses_at`] on `device`.
+fn losses_on(device: Device, precision: settings::model::Precision, steps: usize) -> Vec<f32> {
     let config = XFactorConfig {
         precision,
         ..model_config()
@@ -311,5 +315,19 @@ fn half_precision_trains_like_float32_within_a_percent_of_the_loss() {
             "{}: the loss strays by {worst:e}",
             half.name()
         );
+    }
+}
+
+#[test]
+fn activation_checkpointing_recomputes_to_the_same_losses() {
+    let precision = settings::model::Precision::F32;
+    let plain = losses_on(Device::flex().autodiff(), precision, 4);
+    let checkpointed = losses_on(
+        Device::flex().autodiff().gradient_checkpointing(),
+        precision,
+        4,
+    );
+    for (a, b) in plain.iter().zip(&checkpointed) {
+        assert!((a - b).abs() <= 1e-6 * a.abs().max(1.0), "{a} vs {b}");
     }
 }

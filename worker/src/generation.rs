@@ -56,7 +56,12 @@ pub fn prepare(
     let slices = replica_slices(first, count, micro_batch, devices.len());
     let mut replicas = Vec::with_capacity(devices.len());
     for (device, (first, count)) in devices.into_iter().zip(slices) {
-        let trainer = build_trainer(work, train.clone(), start.as_ref(), &device.autodiff())?;
+        let device = if context.options.activation_checkpointing {
+            device.autodiff().gradient_checkpointing()
+        } else {
+            device.autodiff()
+        };
+        let trainer = build_trainer(work, train.clone(), start.as_ref(), &device)?;
         replicas.push(Replica {
             trainer,
             first,

@@ -24,6 +24,9 @@ pub struct WorkerOptions {
     pub device: Option<DeviceChoice>,
     /// The devices of that backend it drives, one model replica each; `None` follows the job.
     pub devices: Option<DeviceSet>,
+    /// Recompute activations in the backward pass instead of keeping them: less device
+    /// memory (the paper's model at its batch), more time per step.
+    pub activation_checkpointing: bool,
     /// Threads per micro-batch; `None` follows the job (0 there: every core).
     pub threads: Option<usize>,
     /// Name in logs.

@@ -20,6 +20,7 @@ fn help_lists_every_flag_with_its_default() {
             ("--advertise", None),
             ("--device", None),
             ("--devices", None),
+            ("--activation-checkpointing", None),
             ("--threads", None),
             ("--name", None),
             ("--model-config", None),
