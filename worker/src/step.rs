@@ -61,6 +61,9 @@ pub enum StepError {
         #[source]
         source: CollectiveError,
     },
+    /// The worker has no replica to step (it was given no device).
+    #[error("no model replica to step: the worker drives no device")]
+    NoReplicas,
     /// The summed buffer did not fit the model (replicas of different models).
     #[error("the reduced gradients of step {step} do not fit the model")]
     Layout {
@@ -101,7 +104,11 @@ impl Stepper {
         source: &dyn BatchSource,
         progress: &Progress,
     ) -> Result<StepFigures, StepError> {
-        let step = replicas.first().map_or(0, |r| r.trainer.step());
+        let step = replicas
+            .first()
+            .ok_or(StepError::NoReplicas)?
+            .trainer
+            .step();
         progress.doing(Activity::Computing);
         let local = local_sum(replicas, source, step)?;
         progress.doing(Activity::Allreduce);
@@ -132,13 +139,7 @@ impl Stepper {
             metrics.get_or_insert(applied);
         }
         Ok(StepFigures {
-            metrics: metrics.unwrap_or(StepMetrics {
-                step,
-                loss,
-                learning_rate: 0.0,
-                grad_norm: 0.0,
-                applied: false,
-            }),
+            metrics: metrics.ok_or(StepError::NoReplicas)?,
             l1,
             lpips,
             allreduce_s: reduced.seconds,
