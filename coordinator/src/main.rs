@@ -206,5 +206,8 @@ async fn status(args: &StatusArgs) -> anyhow::Result<()> {
             &status.last_commit
         }
     );
+    for worker in &status.worker_list {
+        println!("{}", proto::convert::worker_line(worker));
+    }
     Ok(())
 }

@@ -8,7 +8,9 @@ use coordinator::local::free_port;
 use coordinator::plan::Plan;
 use coordinator::service::CoordinatorService;
 use proto::v1::coordinator_client::CoordinatorClient;
-use proto::v1::{CheckpointCommit, LeaveRequest, RegisterReply, RegisterRequest, StatusRequest};
+use proto::v1::{
+    CheckpointCommit, HeartbeatRequest, LeaveRequest, RegisterReply, RegisterRequest, StatusRequest,
+};
 use tokio::sync::oneshot;
 use tonic::service::interceptor::InterceptedService;
 use tonic::transport::{Channel, Endpoint};
@@ -98,6 +100,7 @@ async fn refusals_name_their_reason() {
     assert_eq!(status.workers, 1);
 
     forged_requests_refused(&mut client, &accepted).await;
+    devices_reported_and_listed(&mut client, &accepted).await;
 
     stop.send(()).unwrap();
     server.await.unwrap().unwrap();
@@ -194,6 +197,50 @@ async fn forged_requests_refused(client: &mut Client, accepted: &RegisterReply) 
         })
         .await
         .unwrap();
+}
+
+/// A worker's heartbeat names the device it trains on and `status` lists it beside the
+/// worker; a device reported as `auto` (never resolved) is refused naming the field.
+async fn devices_reported_and_listed(client: &mut Client, accepted: &RegisterReply) {
+    let heartbeat = |device: proto::v1::DeviceInUse| HeartbeatRequest {
+        worker_id: accepted.worker_id,
+        generation: 0,
+        step: 0,
+        activity: proto::v1::Activity::Idle as i32,
+        session: accepted.session.clone(),
+        device: Some(device),
+    };
+    let h100 = proto::v1::DeviceInUse {
+        backend: proto::v1::Device::Vulkan as i32,
+        name: "NVIDIA H100 80GB HBM3 (Vulkan)".into(),
+        replicas: 4,
+    };
+    client.heartbeat(heartbeat(h100.clone())).await.unwrap();
+    let status = client.status(StatusRequest {}).await.unwrap().into_inner();
+    let listed = status
+        .worker_list
+        .iter()
+        .find(|worker| worker.worker_id == accepted.worker_id)
+        .expect("the worker is listed");
+    assert_eq!(listed.device.as_ref(), Some(&h100));
+    assert_eq!(
+        proto::convert::worker_line(listed),
+        format!(
+            "worker={} name=\"test\" backend=vulkan device=\"NVIDIA H100 80GB HBM3 (Vulkan)\" \
+             replicas=4 pairs_per_s=0.00",
+            accepted.worker_id
+        )
+    );
+    let unresolved = proto::v1::DeviceInUse {
+        backend: proto::v1::Device::Auto as i32,
+        ..h100
+    };
+    let refused = client.heartbeat(heartbeat(unresolved)).await.unwrap_err();
+    assert_eq!(refused.code(), tonic::Code::InvalidArgument);
+    assert!(
+        refused.message().contains("heartbeat.device"),
+        "{refused:?}"
+    );
 }
 
 /// The folder of the test CA, server certificate and keys.

@@ -2,22 +2,38 @@
 
 use serde::{Deserialize, Serialize};
 
-/// The device a job (YAML `workers.device`) or a worker (`--device`) asks for.
+/// The device a job (YAML `workers.device`) or a worker (`--device`) asks for: a backend, or
+/// `auto` for the best one this build and host have.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Deserialize, Serialize, Default)]
 #[serde(rename_all = "snake_case")]
 pub enum DeviceChoice {
-    /// A GPU when the host has one, the CPU otherwise.
+    /// The best device present: CUDA, then libtorch on CUDA, then Vulkan, then a wgpu GPU
+    /// adapter, then the CPU (only the backends this build has).
     #[default]
     Auto,
     /// burn's CPU backend.
     Cpu,
     /// burn-wgpu (a GPU, or lavapipe's software Vulkan device).
     Wgpu,
+    /// burn-wgpu pinned to Vulkan with SPIR-V kernels (cargo feature `vulkan`).
+    Vulkan,
+    /// burn's CUDA backend (cargo feature `cuda`).
+    Cuda,
+    /// burn-tch on an installed PyTorch's libtorch, on CUDA where it has it (cargo feature
+    /// `libtorch`).
+    Libtorch,
 }
 
 impl DeviceChoice {
     /// Every choice, in the order `--help` lists them.
-    pub const ALL: [Self; 3] = [Self::Auto, Self::Cpu, Self::Wgpu];
+    pub const ALL: [Self; 6] = [
+        Self::Auto,
+        Self::Cpu,
+        Self::Wgpu,
+        Self::Vulkan,
+        Self::Cuda,
+        Self::Libtorch,
+    ];
 
     /// The YAML and command-line spelling.
     pub fn name(self) -> &'static str {
@@ -25,6 +41,21 @@ impl DeviceChoice {
             Self::Auto => "auto",
             Self::Cpu => "cpu",
             Self::Wgpu => "wgpu",
+            Self::Vulkan => "vulkan",
+            Self::Cuda => "cuda",
+            Self::Libtorch => "libtorch",
+        }
+    }
+
+    /// The backend named, `None` for `auto`, which the host decides.
+    pub fn backend(self) -> Option<Backend> {
+        match self {
+            Self::Auto => None,
+            Self::Cpu => Some(Backend::Cpu),
+            Self::Wgpu => Some(Backend::Wgpu),
+            Self::Vulkan => Some(Backend::Vulkan),
+            Self::Cuda => Some(Backend::Cuda),
+            Self::Libtorch => Some(Backend::Libtorch),
         }
     }
 }
@@ -37,7 +68,7 @@ impl std::fmt::Display for DeviceChoice {
 
 /// A device name that is none of [`DeviceChoice::ALL`].
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
-#[error("unknown device `{0}`: expected auto, cpu or wgpu")]
+#[error("unknown device `{0}`: expected auto, cpu, wgpu, vulkan, cuda or libtorch")]
 pub struct UnknownDevice(pub String);
 
 impl std::str::FromStr for DeviceChoice {
@@ -46,9 +77,104 @@ impl std::str::FromStr for DeviceChoice {
     fn from_str(name: &str) -> Result<Self, Self::Err> {
         Self::ALL
             .into_iter()
-            .find(|choice| choice.name() == name)
+            .find(|choice| choice.name().eq_ignore_ascii_case(name.trim()))
             .ok_or_else(|| UnknownDevice(name.to_string()))
     }
+}
+
+/// A compute backend a model runs on: what `auto` resolves to, what a worker reports it
+/// trains on, and the `--backend` of the one-process binaries.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, Deserialize, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Backend {
+    /// burn's pure-Rust CPU backend (flex), multi-threaded with rayon.
+    Cpu,
+    /// burn-wgpu on the best adapter present; WGSL kernels in the default build.
+    Wgpu,
+    /// burn-wgpu pinned to Vulkan, SPIR-V kernels.
+    Vulkan,
+    /// burn's CUDA backend.
+    Cuda,
+    /// burn-tch, the libtorch of an installed PyTorch.
+    Libtorch,
+}
+
+impl Backend {
+    /// Every backend, in the order `--help` lists them.
+    pub const ALL: [Self; 5] = [
+        Self::Cpu,
+        Self::Wgpu,
+        Self::Vulkan,
+        Self::Cuda,
+        Self::Libtorch,
+    ];
+
+    /// Short lowercase name, as [`DeviceChoice`] spells it.
+    pub fn name(self) -> &'static str {
+        self.choice().name()
+    }
+
+    /// The device choice that names this backend.
+    pub fn choice(self) -> DeviceChoice {
+        match self {
+            Self::Cpu => DeviceChoice::Cpu,
+            Self::Wgpu => DeviceChoice::Wgpu,
+            Self::Vulkan => DeviceChoice::Vulkan,
+            Self::Cuda => DeviceChoice::Cuda,
+            Self::Libtorch => DeviceChoice::Libtorch,
+        }
+    }
+
+    /// The cargo feature (of trainer-core, worker and evaluation) a build needs for this
+    /// backend; `None` for the two every build has.
+    pub fn cargo_feature(self) -> Option<&'static str> {
+        match self {
+            Self::Cpu | Self::Wgpu => None,
+            Self::Vulkan => Some("vulkan"),
+            Self::Cuda => Some("cuda"),
+            Self::Libtorch => Some("libtorch"),
+        }
+    }
+}
+
+impl std::fmt::Display for Backend {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.name())
+    }
+}
+
+/// A backend name that is none of [`Backend::ALL`] (nor an alias).
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+#[error("unknown backend `{0}`: expected cpu (flex), wgpu (gpu), vulkan, cuda or libtorch")]
+pub struct UnknownBackend(pub String);
+
+impl std::str::FromStr for Backend {
+    type Err = UnknownBackend;
+
+    /// The names, and the aliases `flex` (cpu) and `gpu` (wgpu), in any case.
+    fn from_str(name: &str) -> Result<Self, Self::Err> {
+        let unknown = || UnknownBackend(name.to_string());
+        match name.trim().to_ascii_lowercase().as_str() {
+            "flex" => Ok(Self::Cpu),
+            "gpu" => Ok(Self::Wgpu),
+            other => other
+                .parse::<DeviceChoice>()
+                .ok()
+                .and_then(DeviceChoice::backend)
+                .ok_or_else(unknown),
+        }
+    }
+}
+
+/// The device a worker resolved its choice to and trains on, as it reports it.
+#[derive(Debug, Clone, PartialEq, Eq, Serialize)]
+pub struct DeviceInUse {
+    /// The backend.
+    pub backend: Backend,
+    /// The adapter's or card's name (`NVIDIA H100 80GB HBM3 (Vulkan)`; `cpu`).
+    pub name: String,
+    /// Model replicas on it (several devices, or several replicas of the CPU).
+    pub replicas: u32,
 }
 
 /// Which of a host's devices one worker drives, one model replica on each (`--devices`):
@@ -197,7 +323,25 @@ mod tests {
     fn names_round_trip_and_unknown_names_are_refused() {
         for choice in DeviceChoice::ALL {
             assert_eq!(choice.name().parse::<DeviceChoice>(), Ok(choice));
+            assert_eq!(
+                choice.name().to_uppercase().parse::<DeviceChoice>(),
+                Ok(choice)
+            );
         }
+        for backend in Backend::ALL {
+            assert_eq!(backend.name().parse::<Backend>(), Ok(backend));
+            assert_eq!(backend.choice().backend(), Some(backend));
+        }
+        assert_eq!("Flex".parse::<Backend>(), Ok(Backend::Cpu));
+        assert_eq!("GPU".parse::<Backend>(), Ok(Backend::Wgpu));
+        assert_eq!(
+            "auto".parse::<Backend>(),
+            Err(UnknownBackend("auto".into()))
+        );
+        assert_eq!(
+            "tpu".parse::<Backend>().unwrap_err().to_string(),
+            "unknown backend `tpu`: expected cpu (flex), wgpu (gpu), vulkan, cuda or libtorch"
+        );
         assert_eq!(
             "tpu".parse::<DeviceChoice>(),
             Err(UnknownDevice("tpu".into()))

@@ -15,6 +15,8 @@ pub mod phase;
 pub mod train;
 pub mod work;
 
-pub use device::{BadDeviceSet, DeviceChoice, DeviceSet, UnknownDevice};
+pub use device::{
+    Backend, BadDeviceSet, DeviceChoice, DeviceInUse, DeviceSet, UnknownBackend, UnknownDevice,
+};
 pub use model::XFactorConfig;
 pub use phase::Phase;

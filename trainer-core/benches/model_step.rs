@@ -18,13 +18,13 @@ use burn::tensor::{Device, Tensor, TensorData};
 use data::rng::Stream;
 use settings::model::Precision;
 use trainer_core::allocator;
-use trainer_core::backend::BackendChoice;
+use trainer_core::backend::{Backend, BackendDevices};
 use trainer_core::model::PoseLatents;
 use trainer_core::sharded::sharded_gradients;
 use trainer_core::{XFactor, XFactorConfig};
 
 struct Options {
-    backend: BackendChoice,
+    backend: Backend,
     shards: usize,
     steps: usize,
     batch: usize,
@@ -43,7 +43,7 @@ struct Options {
 
 fn parse_options() -> Options {
     let mut options = Options {
-        backend: BackendChoice::Cpu,
+        backend: Backend::Cpu,
         shards: std::thread::available_parallelism().map_or(1, |n| n.get()),
         steps: 5,
         batch: 8,
@@ -65,7 +65,7 @@ fn parse_options() -> Options {
                 options.backend = args
                     .next()
                     .and_then(|v| v.parse().ok())
-                    .expect("--backend cpu|wgpu")
+                    .expect("--backend cpu|wgpu|vulkan|cuda|libtorch")
             }
             "--steps" => {
                 options.steps = args.next().and_then(|v| v.parse().ok()).expect("--steps N")
@@ -289,10 +289,17 @@ fn main() {
         precision,
         ..config
     };
+    let inference = match options.backend.device() {
+        Ok(device) => device,
+        Err(error) => {
+            println!("backend={} unavailable=\"{error}\"", options.backend);
+            std::process::exit(2);
+        }
+    };
     let device = if options.checkpointing {
-        options.backend.device().autodiff().gradient_checkpointing()
+        inference.clone().autodiff().gradient_checkpointing()
     } else {
-        options.backend.device().autodiff()
+        inference.clone().autodiff()
     };
     let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
     println!(
@@ -338,7 +345,7 @@ fn main() {
         " checkpointing={}",
         if options.checkpointing { "on" } else { "off" }
     ));
-    if let (BackendChoice::Cpu, Some(peak)) = (options.backend, peak_rss_bytes()) {
+    if let (Backend::Cpu, Some(peak)) = (options.backend, peak_rss_bytes()) {
         line.push_str(&format!(" peak_host_rss_bytes={peak}"));
     }
     if options.jax {
@@ -359,7 +366,6 @@ fn main() {
 
     if options.paper {
         let paper = XFactorConfig::paper();
-        let inference = options.backend.device();
         let start = Instant::now();
         let big = XFactor::new(&paper, 0, &inference).expect("paper config is valid");
         let build_s = start.elapsed().as_secs_f64();

@@ -3,7 +3,7 @@
 mod common;
 
 use burn::tensor::{Device, Tensor};
-use trainer_core::backend::BackendChoice;
+use trainer_core::backend::{Backend, BackendDevices};
 use trainer_core::flax::{FlaxTensors, HostTensor};
 use trainer_core::lpips::Lpips;
 
@@ -50,12 +50,12 @@ fn check(device: &Device, label: &str) {
 
 #[test]
 fn lpips_matches_the_authors_on_cpu() {
-    check(&BackendChoice::Cpu.device(), "lpips/cpu");
+    check(&Backend::Cpu.device().unwrap(), "lpips/cpu");
 }
 
 #[test]
 fn lpips_matches_the_authors_on_wgpu() {
-    check(&BackendChoice::Wgpu.device(), "lpips/wgpu");
+    check(&Backend::Wgpu.device().unwrap(), "lpips/wgpu");
 }
 
 #[test]

@@ -6,7 +6,7 @@ use std::path::{Path, PathBuf};
 
 use burn::tensor::{Device, Tensor};
 use trainer_core::XFactor;
-use trainer_core::backend::BackendChoice;
+use trainer_core::backend::{Backend, BackendDevices};
 use trainer_core::flax::{FlaxTensors, PARAMS_PREFIX, load_flax};
 use trainer_core::parity::{
     GRADIENT_TOLERANCE, OUTPUT_TOLERANCE, check_fixture, read_fixture_config,
@@ -54,23 +54,23 @@ fn assert_parity(fixture: &Path, device: &Device, label: &str) {
 #[test]
 fn tiny_fixture_matches_on_cpu() {
     let fixture = common::shared_fixture("xfactor-tiny.safetensors");
-    assert_parity(&fixture, &BackendChoice::Cpu.device(), "tiny/cpu");
+    assert_parity(&fixture, &Backend::Cpu.device().unwrap(), "tiny/cpu");
 }
 
 #[test]
 fn tiny_fixture_matches_on_wgpu() {
     let fixture = common::shared_fixture("xfactor-tiny.safetensors");
-    assert_parity(&fixture, &BackendChoice::Wgpu.device(), "tiny/wgpu");
+    assert_parity(&fixture, &Backend::Wgpu.device().unwrap(), "tiny/wgpu");
 }
 
 #[test]
 fn other_sizes_match_on_both_backends() {
     for name in ["xfactor-deep.safetensors", "xfactor-manyviews.safetensors"] {
         let fixture = local_fixture(name);
-        for backend in [BackendChoice::Cpu, BackendChoice::Wgpu] {
+        for backend in [Backend::Cpu, Backend::Wgpu] {
             assert_parity(
                 &fixture,
-                &backend.device(),
+                &backend.device().unwrap(),
                 &format!("{name}/{}", backend.name()),
             );
         }

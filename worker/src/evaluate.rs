@@ -5,6 +5,7 @@ use anyhow::Context;
 use settings::Phase;
 use settings::work::EvaluateWork;
 use tokio::runtime::Runtime;
+use trainer_core::backend::BackendDevices;
 
 use crate::checkpoints;
 use crate::commits::{self, CommitRequest};
@@ -22,7 +23,9 @@ pub fn evaluate(
     work: &EvaluateWork,
 ) -> anyhow::Result<Ending> {
     let choice = context.options.device.unwrap_or(work.device);
-    let backend = device::resolve(choice, &context.progress.metrics)?.backend;
+    let resolved = device::resolve(choice, &context.progress.metrics)?;
+    context.progress.device.set(&resolved, 1);
+    let backend = resolved.backend;
     let scratch = context.scratch();
     let weights_dir = scratch.join("evaluate-weights");
     let report_dir = scratch.join("evaluation");
@@ -38,7 +41,7 @@ pub fn evaluate(
         &work.spec,
         &weights_dir.join("model.safetensors"),
         &report_dir,
-        &backend.device(),
+        &backend.device()?,
     )
     .with_context(|| format!("evaluating {}", work.weights))?;
     tracing::info!(

@@ -11,6 +11,7 @@ use settings::work::{TrainStart, TrainWork};
 use tokio::runtime::Runtime;
 use trainer_core::Device;
 use trainer_core::XFactor;
+use trainer_core::backend::BackendDevices;
 use trainer_core::lpips::Lpips;
 use trainer_core::trainer::Trainer;
 
@@ -48,8 +49,10 @@ pub fn prepare(
         .or((train.shards > 0).then_some(train.shards))
         .unwrap_or(cores);
     let choice = context.options.device.unwrap_or(work.device);
-    let backend = device::resolve(choice, &context.progress.metrics)?.backend;
+    let resolved = device::resolve(choice, &context.progress.metrics)?;
+    let backend = resolved.backend;
     let devices = backend.devices(context.options.devices.as_ref().unwrap_or(&work.devices))?;
+    context.progress.device.set(&resolved, devices.len());
     let start = fetch_start(runtime, context, work)?;
     let (first, count) = rank_slice(work.train.global_batch, work.world_size(), work.rank);
     let micro_batch = work.train.micro_batch.max(1);

@@ -5,7 +5,7 @@ use std::path::PathBuf;
 use std::time::Duration;
 
 use anyhow::Context;
-use clap::{CommandFactory, Parser, Subcommand, ValueEnum};
+use clap::{CommandFactory, Parser, Subcommand};
 use proto::auth::TokenArgs;
 use proto::tls::TlsClientArgs;
 use settings::{DeviceChoice, DeviceSet};
@@ -40,17 +40,6 @@ enum Command {
     AllreduceBench(BenchArgs),
 }
 
-/// The compute device a worker asks for instead of the job's.
-#[derive(Debug, Clone, Copy, ValueEnum)]
-enum Device {
-    /// A GPU when a driver reports one (wgpu), else the CPU
-    Auto,
-    /// burn's CPU backend
-    Cpu,
-    /// burn-wgpu
-    Wgpu,
-}
-
 #[derive(Debug, clap::Args)]
 struct DaemonArgs {
     /// The coordinator, http(s)://HOST:PORT (under Slurm by default the job's first node,
@@ -71,9 +60,11 @@ struct DaemonArgs {
     /// takes the bound port (under Slurm by default the node's name)
     #[arg(long, value_name = "HOST[:PORT]")]
     advertise: Option<String>,
-    /// Compute device (by default the job's)
-    #[arg(long, value_enum)]
-    device: Option<Device>,
+    /// Compute device (by default the job's): auto (the best present: CUDA, libtorch on CUDA,
+    /// Vulkan, a wgpu GPU, else the CPU), cpu, wgpu, or vulkan, cuda, libtorch in a build with
+    /// that cargo feature
+    #[arg(long, value_name = "auto|cpu|wgpu|vulkan|cuda|libtorch")]
+    device: Option<DeviceChoice>,
     /// Devices this worker drives, one model replica each: all of the backend's, the first
     /// N, or indices (0,2); gradients are summed across them before the ring. The CPU is one
     /// device; N on it runs N replicas there (by default the job's)
@@ -205,11 +196,7 @@ impl DaemonArgs {
             token,
             listen,
             advertise,
-            device: self.device.map(|device| match device {
-                Device::Auto => DeviceChoice::Auto,
-                Device::Cpu => DeviceChoice::Cpu,
-                Device::Wgpu => DeviceChoice::Wgpu,
-            }),
+            device: self.device,
             devices: self.devices,
             activation_checkpointing: self.activation_checkpointing,
             threads: self.threads,

@@ -10,6 +10,8 @@ use proto::v1::Activity;
 use telemetry::Registry;
 use tokio::sync::watch;
 
+use crate::device::DeviceReport;
+
 /// What the training thread and the heartbeat task share.
 pub struct Progress {
     /// This worker's id (0 before registration).
@@ -30,6 +32,8 @@ pub struct Progress {
     pub known: AtomicBool,
     /// The worker's Prometheus series.
     pub metrics: Arc<Registry>,
+    /// The device the current generation trains on, for the heartbeats.
+    pub device: DeviceReport,
 }
 
 impl Progress {
@@ -45,6 +49,7 @@ impl Progress {
             cancel,
             known: AtomicBool::new(false),
             metrics: Arc::new(Registry::new()),
+            device: DeviceReport::default(),
         }
     }
 

@@ -171,6 +171,11 @@ pub async fn heartbeats(mut client: Client, progress: Arc<Progress>, interval: D
             step: progress.step.load(Ordering::SeqCst),
             activity: progress.activity.load(Ordering::SeqCst),
             session: progress.session(),
+            device: progress
+                .device
+                .get()
+                .as_ref()
+                .map(proto::convert::device_in_use_to_wire),
         };
         match client.heartbeat(request).await {
             Ok(reply) => {

@@ -198,7 +198,7 @@ mod tests {
     use settings::train::{StageObjective, TrainConfig};
     use settings::{DeviceSet, XFactorConfig};
     use trainer_core::XFactor;
-    use trainer_core::backend::BackendChoice;
+    use trainer_core::backend::{Backend, BackendDevices};
     use trainer_core::flat::{flatten_parameters, parameter_checksum};
 
     use super::*;
@@ -244,7 +244,7 @@ mod tests {
     /// cut as `generation::prepare` cuts it.
     fn replicas(set: &DeviceSet) -> Vec<Replica> {
         let model = XFactorConfig::tiny(16);
-        let devices = BackendChoice::Cpu.devices(set).unwrap();
+        let devices = Backend::Cpu.devices(set).unwrap();
         let slices = crate::generation::replica_slices(0, GLOBAL_BATCH, 1, devices.len());
         devices
             .into_iter()
@@ -338,7 +338,7 @@ mod tests {
                 &XFactor::new(
                     &XFactorConfig::tiny(16),
                     5,
-                    &BackendChoice::Cpu.device().autodiff()
+                    &Backend::Cpu.device().unwrap().autodiff()
                 )
                 .unwrap()
             ),

@@ -99,6 +99,32 @@ fn wgpu_on_a_host_without_an_adapter_is_refused_before_the_worker_joins() {
 }
 
 #[test]
+fn a_backend_left_out_of_this_build_is_refused_naming_its_cargo_feature() {
+    for backend in ["vulkan", "cuda", "libtorch"] {
+        let built = match backend {
+            "vulkan" => cfg!(feature = "vulkan"),
+            "cuda" => cfg!(feature = "cuda"),
+            _ => cfg!(feature = "libtorch"),
+        };
+        if built {
+            continue;
+        }
+        let output = std::process::Command::new(WORKER)
+            .args(["--coordinator", "http://127.0.0.1:1", "--token", "t"])
+            .args(["--device", backend, "--no-slurm"])
+            .output()
+            .unwrap();
+        let said = String::from_utf8_lossy(&output.stderr);
+        assert_eq!(output.status.code(), Some(1), "{said}");
+        assert!(
+            said.contains(&format!("built without the `{backend}` cargo feature")),
+            "{said}"
+        );
+        assert!(said.contains(&format!("--features {backend}")), "{said}");
+    }
+}
+
+#[test]
 fn a_missing_token_names_the_variable() {
     let var = "XFACTOR_TEST_TOKEN_THAT_IS_NOT_SET";
     let daemon = ["--coordinator", "http://127.0.0.1:1", "--token-env", var];

@@ -11,7 +11,7 @@ use std::collections::{BTreeMap, BTreeSet, HashMap};
 use std::time::{Duration, Instant};
 
 use proto::v1::{Activity, Assignment, StepReport};
-use settings::Phase;
+use settings::{DeviceInUse, Phase};
 
 use crate::plan::Plan;
 use faults::StoreRetry;
@@ -40,6 +40,8 @@ struct Member {
     waiting_after: Option<u64>,
     finished_step: Option<(Phase, u64)>,
     samples_per_s: f64,
+    /// The device it said it trains on, once a generation resolved it.
+    device: Option<DeviceInUse>,
     /// What the worker last said it was doing, at which step, and since when.
     activity: (Activity, u64),
     activity_since: Instant,
@@ -262,6 +264,7 @@ impl JobState {
                 waiting_after: None,
                 finished_step: None,
                 samples_per_s: 0.0,
+                device: None,
                 activity: (Activity::Idle, 0),
                 activity_since: now,
             },
@@ -290,6 +293,22 @@ impl JobState {
                 (true, self.is_current(generation))
             }
             _ => (false, false),
+        }
+    }
+
+    /// Records the device a worker said it trains on, for `status`.
+    pub fn record_device(&mut self, worker: u64, device: DeviceInUse) {
+        if let Some(member) = self.members.get_mut(&worker)
+            && member.device.as_ref() != Some(&device)
+        {
+            tracing::info!(
+                worker,
+                backend = %device.backend,
+                device = %device.name,
+                replicas = device.replicas,
+                "worker device"
+            );
+            member.device = Some(device);
         }
     }
 

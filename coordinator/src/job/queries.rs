@@ -1,7 +1,7 @@
 //! What the job state tells operators and the service: status, throughput, curves, and the
 //! step records for the history file.
 
-use proto::v1::JobStatus;
+use proto::v1::{JobStatus, WorkerSummary};
 use settings::Phase;
 use telemetry::curves::{Curve, CurvePanel};
 
@@ -44,6 +44,20 @@ impl JobState {
                 Phase::Evaluate | Phase::Finished => stage1 + stage2,
             },
             job_steps_total: stage1 + stage2,
+            worker_list: self
+                .members
+                .iter()
+                .filter(|(_, member)| !member.lost)
+                .map(|(&worker_id, member)| WorkerSummary {
+                    worker_id,
+                    name: member.name.clone(),
+                    device: member
+                        .device
+                        .as_ref()
+                        .map(proto::convert::device_in_use_to_wire),
+                    samples_per_s: member.samples_per_s,
+                })
+                .collect(),
         }
     }
 

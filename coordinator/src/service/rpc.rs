@@ -77,12 +77,23 @@ impl Coordinator for CoordinatorService {
                     value: request.activity,
                 })
             })?;
-            let (known, generation_current) = self.state.lock().await.heartbeat(
+            let device = request
+                .device
+                .as_ref()
+                .map(|device| proto::convert::device_in_use_from_wire(device, "heartbeat.device"))
+                .transpose()
+                .map_err(malformed)?;
+            let mut state = self.state.lock().await;
+            let (known, generation_current) = state.heartbeat(
                 request.worker_id,
                 request.generation,
                 Some((activity, request.step)),
                 Instant::now(),
             );
+            if let Some(device) = device {
+                state.record_device(request.worker_id, device);
+            }
+            drop(state);
             self.metrics.add(&metrics::HEARTBEATS, &[], 1.0);
             Ok(Response::new(HeartbeatReply {
                 generation_current,

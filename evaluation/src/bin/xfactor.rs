@@ -13,7 +13,7 @@ use evaluation::evaluate::read_spec;
 use evaluation::{Sampling, TransferRequest, run_evaluation, run_transfer_sampled};
 use settings::evaluation::OracleSpec;
 use telemetry::logging::LogArgs;
-use trainer_core::backend::BackendArgs;
+use trainer_core::backend::{BackendArgs, BackendDevices};
 
 /// Trajectory transfer and the paper's evaluation of an XFactor checkpoint.
 #[derive(Debug, Parser)]
@@ -172,7 +172,7 @@ fn transfer(args: TransferArgs) -> anyhow::Result<()> {
         frames: args.frames,
         scene_frames: args.scene_frames,
     };
-    let device = args.backend.backend.device();
+    let device = args.backend.backend.device()?;
     let output = run_transfer_sampled(&request, &sampling, &device)
         .with_context(|| format!("transferring {} into {}", request.trajectory, request.scene))?;
     println!("{}", serde_json::to_string_pretty(&output)?);
@@ -196,7 +196,7 @@ fn evaluate(args: EvaluateArgs) -> anyhow::Result<()> {
     if let Some(lpips) = args.lpips {
         spec.lpips_weights = Some(lpips);
     }
-    let device = args.backend.backend.device();
+    let device = args.backend.backend.device()?;
     let report = run_evaluation(&spec, &args.checkpoint, &args.out, &device)
         .with_context(|| format!("evaluating {}", args.checkpoint.display()))?;
     print!("{}", evaluation::evaluate::markdown(&report));
@@ -208,10 +208,7 @@ fn import_checkpoint(args: ImportArgs) -> anyhow::Result<()> {
     let imported = trainer_core::import::read_clu(&args.dir, args.image_size)
         .with_context(|| format!("importing {}", args.dir.display()))?;
     imported
-        .write(
-            &args.out,
-            &trainer_core::backend::BackendChoice::Cpu.device(),
-        )
+        .write(&args.out, &trainer_core::backend::Backend::Cpu.device()?)
         .with_context(|| format!("writing {}", args.out.display()))?;
     println!(
         "imported={} out={} width={} layers={}+{} step={} updates={} lpips={}",

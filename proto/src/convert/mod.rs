@@ -3,6 +3,7 @@
 //! Writing is total; reading fails with the field at fault when a required sub-message is
 //! absent or an enum holds a value this build does not know (a peer of another version).
 
+use settings::Phase;
 use settings::data::{
     DataSource, DataSpec, DatasetKind, DatasetSampling, ListingFingerprint, SamplerConfig,
     StoredDataset,
@@ -11,13 +12,16 @@ use settings::evaluation::{EvaluationSpec, OracleSpec, ProbeLoss, ProbeSpec, Seq
 use settings::objective::{AugmentConfig, ObjectiveVariant, Stage1Config, Stage2Config};
 use settings::optim::{AdamWConfig, Schedule};
 use settings::train::{StageObjective, TrainConfig};
-use settings::{DeviceChoice, Phase};
 
 use crate::v1;
 
+mod device;
 mod model;
 mod work;
 
+pub use device::{
+    device_from_wire, device_in_use_from_wire, device_in_use_to_wire, device_to_wire, worker_line,
+};
 pub use work::{devices_from_wire, devices_to_wire};
 
 /// A message that cannot become its settings type.
@@ -84,25 +88,6 @@ pub fn status_label(status: &v1::JobStatus) -> String {
         Ok(Phase::Evaluate) => "evaluate (waiting for a worker)".into(),
         Ok(phase) => format!("{phase} (waiting for workers)"),
         Err(_) => format!("unknown phase {}", status.phase),
-    }
-}
-
-/// The wire form of a device choice.
-pub fn device_to_wire(device: DeviceChoice) -> v1::Device {
-    match device {
-        DeviceChoice::Auto => v1::Device::Auto,
-        DeviceChoice::Cpu => v1::Device::Cpu,
-        DeviceChoice::Wgpu => v1::Device::Wgpu,
-    }
-}
-
-/// A device choice from its wire value.
-pub fn device_from_wire(value: i32, field: &'static str) -> Result<DeviceChoice, ConvertError> {
-    match v1::Device::try_from(value) {
-        Ok(v1::Device::Auto) => Ok(DeviceChoice::Auto),
-        Ok(v1::Device::Cpu) => Ok(DeviceChoice::Cpu),
-        Ok(v1::Device::Wgpu) => Ok(DeviceChoice::Wgpu),
-        Err(_) => Err(ConvertError::Unknown { field, value }),
     }
 }
 

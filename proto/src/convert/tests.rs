@@ -1,8 +1,8 @@
 //! Every setting survives the wire; missing parts and unknown values are named.
 
 use super::*;
-use settings::XFactorConfig;
 use settings::model::PoseConditioning;
+use settings::{Backend, DeviceChoice, DeviceInUse, XFactorConfig};
 
 #[test]
 fn model_settings_survive_the_wire() {
@@ -144,6 +144,27 @@ fn evaluation_settings_phases_and_devices_survive_the_wire() {
             Ok(device)
         );
     }
+    for backend in Backend::ALL {
+        let in_use = DeviceInUse {
+            backend,
+            name: "NVIDIA H100 (Vulkan)".into(),
+            replicas: 4,
+        };
+        let wire = device_in_use_to_wire(&in_use);
+        assert_eq!(device_in_use_from_wire(&wire, "device"), Ok(in_use));
+    }
+    let auto = v1::DeviceInUse {
+        backend: v1::Device::Auto as i32,
+        name: "cpu".into(),
+        replicas: 1,
+    };
+    assert!(matches!(
+        device_in_use_from_wire(&auto, "device"),
+        Err(ConvertError::Malformed {
+            field: "device",
+            ..
+        })
+    ));
 }
 
 #[test]

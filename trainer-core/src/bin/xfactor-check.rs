@@ -6,7 +6,7 @@ use std::process::ExitCode;
 
 use anyhow::Context;
 use clap::Parser;
-use trainer_core::backend::BackendArgs;
+use trainer_core::backend::{BackendArgs, BackendDevices};
 use trainer_core::parity::{GRADIENT_TOLERANCE, OUTPUT_TOLERANCE, check_fixture};
 
 /// Checks the model against a fixture of the authors' layout; exits 1 when any output or
@@ -40,7 +40,7 @@ fn main() -> ExitCode {
 fn run(cli: Cli) -> anyhow::Result<bool> {
     let Cli { fixture, backend } = cli;
     let backend = backend.backend;
-    let report = check_fixture(&fixture, &backend.device())
+    let report = check_fixture(&fixture, &backend.device()?)
         .with_context(|| format!("checking {}", fixture.display()))?;
 
     println!(
