@@ -162,16 +162,18 @@ fn target(relative: &CameraPose) -> [f32; OUTPUTS] {
     .map(|v| v as f32)
 }
 
-/// Trains a probe on `train` and scores it on `test`, on `device` (which must support
-/// autodiff); also returns each test sequence's true and predicted path.
-pub fn run_probe(
-    train: &[ProbeSequence],
-    test: &[ProbeSequence],
-    spec: &ProbeSpec,
-    seed: u64,
-    device: &Device,
-) -> Result<(ProbeReport, Vec<ProbePath>), EvalError> {
-    // One training sample: a frame pair, or (scale-aligned) a whole sequence's pairs.
+/// The probe's training set, borrowed from the training sequences.
+struct TrainingSet<'a> {
+    /// PoseEnc's probe input of every training pair.
+    inputs: Vec<&'a Latent>,
+    /// The target of every training pair.
+    targets: Vec<[f32; OUTPUTS]>,
+    /// One training sample: a frame pair, or (scale-aligned) a whole sequence's pairs.
+    samples: Vec<std::ops::Range<usize>>,
+}
+
+/// The pairs `(frame 0, frame i)` of every training sequence, grouped into samples by `spec.loss`.
+fn training_set<'a>(train: &'a [ProbeSequence], spec: &ProbeSpec) -> TrainingSet<'a> {
     let mut inputs: Vec<&Latent> = Vec::new();
     let mut targets: Vec<[f32; OUTPUTS]> = Vec::new();
     let mut samples: Vec<std::ops::Range<usize>> = Vec::new();
@@ -189,16 +191,21 @@ pub fn run_probe(
             samples.push(first..inputs.len());
         }
     }
-    let dims = inputs.first().map(|l| l.len()).ok_or_else(|| {
-        EvalError::Invalid(
-            "the probe has no training samples (need >= 2 frames and a training scene)".to_string(),
-        )
-    })?;
-    if spec.batch == 0 || spec.width == 0 {
-        return Err(EvalError::Invalid(
-            "probe batch and width must be positive".to_string(),
-        ));
+    TrainingSet {
+        inputs,
+        targets,
+        samples,
     }
+}
+
+/// Trains a probe reading `dims` input features on `set`; returns it with its final loss.
+fn train_probe(
+    set: &TrainingSet<'_>,
+    dims: usize,
+    spec: &ProbeSpec,
+    seed: u64,
+    device: &Device,
+) -> Result<(Mlp3, f64), EvalError> {
     // The release's MLP3 (tanh GELU; Xavier-uniform kernels, biases N(0, 1e-6), so the first
     // outputs are small), drawn from the evaluation seed.
     let mut init = ParamInit::new(seed ^ PROBE_TAG, device);
@@ -208,14 +215,14 @@ pub fn run_probe(
     let mut losses = Vec::with_capacity(spec.steps);
     for _ in 0..spec.steps {
         let picks: Vec<&std::ops::Range<usize>> = (0..spec.batch)
-            .map(|_| &samples[stream.below(samples.len() as u64) as usize])
+            .map(|_| &set.samples[stream.below(set.samples.len() as u64) as usize])
             .collect();
         let rows: Vec<usize> = picks.iter().flat_map(|range| (*range).clone()).collect();
         let x: Vec<f32> = rows
             .iter()
-            .flat_map(|&i| inputs[i].iter().copied())
+            .flat_map(|&i| set.inputs[i].iter().copied())
             .collect();
-        let batch_targets: Vec<[f32; OUTPUTS]> = rows.iter().map(|&i| targets[i]).collect();
+        let batch_targets: Vec<[f32; OUTPUTS]> = rows.iter().map(|&i| set.targets[i]).collect();
         let groups: Vec<usize> = picks.iter().map(|range| range.len()).collect();
         let x = Tensor::<2>::from_data(TensorData::new(x, [rows.len(), dims]), device);
         let outputs = probe.forward(x);
@@ -238,7 +245,17 @@ pub fn run_probe(
     let tail = losses.len().div_ceil(10).max(1);
     let final_loss =
         losses.iter().rev().take(tail).sum::<f64>() / tail.min(losses.len()).max(1) as f64;
+    Ok((probe, final_loss))
+}
 
+/// The camera metrics of `probe` over every frame pair of `test`, and each sequence's paths.
+fn score_probe(
+    probe: &Mlp3,
+    test: &[ProbeSequence],
+    dims: usize,
+    spec: &ProbeSpec,
+    device: &Device,
+) -> Result<(CameraMetrics, Vec<ProbePath>), EvalError> {
     let mut errors = Vec::new();
     let mut trajectories = Vec::with_capacity(test.len());
     let mut paths = Vec::with_capacity(test.len());
@@ -266,12 +283,38 @@ pub fn run_probe(
         trajectories.push(trajectory_error(&reference, &predicted));
         paths.push((reference, predicted));
     }
+    let metrics = CameraMetrics::from_errors(&errors).with_trajectory_errors(&trajectories);
+    Ok((metrics, paths))
+}
+
+/// Trains a probe on `train` and scores it on `test`, on `device` (which must support
+/// autodiff); also returns each test sequence's true and predicted path.
+pub fn run_probe(
+    train: &[ProbeSequence],
+    test: &[ProbeSequence],
+    spec: &ProbeSpec,
+    seed: u64,
+    device: &Device,
+) -> Result<(ProbeReport, Vec<ProbePath>), EvalError> {
+    let set = training_set(train, spec);
+    let dims = set.inputs.first().map(|l| l.len()).ok_or_else(|| {
+        EvalError::Invalid(
+            "the probe has no training samples (need >= 2 frames and a training scene)".to_string(),
+        )
+    })?;
+    if spec.batch == 0 || spec.width == 0 {
+        return Err(EvalError::Invalid(
+            "probe batch and width must be positive".to_string(),
+        ));
+    }
+    let (probe, final_loss) = train_probe(&set, dims, spec, seed, device)?;
+    let (metrics, paths) = score_probe(&probe, test, dims, spec, device)?;
     Ok((
         ProbeReport {
-            train_samples: inputs.len(),
+            train_samples: set.inputs.len(),
             test_sequences: test.len(),
             final_loss,
-            metrics: CameraMetrics::from_errors(&errors).with_trajectory_errors(&trajectories),
+            metrics,
         },
         paths,
     ))

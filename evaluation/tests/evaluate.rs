@@ -19,6 +19,7 @@
 //! untrained model's (AUC@30 0.114 vs 0.130); on 14 it generalises, and the trained features
 //! win (0.122 vs 0.085 after 800 probe steps; TPS 0.058 vs 0.000 on these scenes).
 
+use std::path::Path;
 use std::time::Instant;
 
 use burn::tensor::Device;
@@ -56,9 +57,9 @@ fn summary(name: &str, report: &evaluation::evaluate::ModelReport) -> (f64, f64)
     (tps, probe)
 }
 
-#[test]
-fn trained_model_beats_untrained_on_tps_and_probe() {
-    let started = Instant::now();
+/// Trains the small model for [`STEPS`] stage-1 steps on generated scenes and returns the
+/// scratch directory holding its checkpoint (`model.safetensors`); the report goes beside it.
+fn train_to_scratch() -> tempfile::TempDir {
     let device = Device::flex().autodiff();
     let dataset = SyntheticDataset::generate(
         0,
@@ -95,9 +96,13 @@ fn trained_model_beats_untrained_on_tps_and_probe() {
     trainer
         .run(&dataset, STEPS, Some((scratch.path(), 0)), |_| {})
         .unwrap();
-    let trained_at = started.elapsed().as_secs_f64();
+    scratch
+}
 
-    let spec = EvaluationSpec {
+/// What the evaluation draws: every scene, 96 TPS transfers of all frames, an 800-step probe
+/// and the ground-truth oracle (see the module docs for why).
+fn evaluation_spec() -> EvaluationSpec {
+    EvaluationSpec {
         seed: 0,
         scenes: EVALUATION_SCENES,
         trajectories: TRAJECTORIES,
@@ -111,7 +116,51 @@ fn trained_model_beats_untrained_on_tps_and_probe() {
         },
         oracle: OracleSpec::GroundTruth,
         ..EvaluationSpec::default()
-    };
+    }
+}
+
+/// The files written to `out` match `report`: `report.json` reads back to it, `report.md` has
+/// both models' rows, and every figure opens (the probe paths and TPS renders among them).
+fn assert_report_files(report: &EvaluationReport, out: &Path) {
+    let json: EvaluationReport =
+        serde_json::from_slice(&std::fs::read(out.join("report.json")).unwrap()).unwrap();
+    assert_eq!(
+        (json.spec, json.figures.clone()),
+        (report.spec.clone(), report.figures.clone())
+    );
+    assert!(
+        (json.trained.tps.model.mean_translation_error
+            - report.trained.tps.model.mean_translation_error)
+            .abs()
+            < 1e-9
+    );
+    let markdown = std::fs::read_to_string(out.join("report.md")).unwrap();
+    assert!(markdown.contains("| trained | TPS |") && markdown.contains("| untrained | probe |"));
+    for figure in &report.figures {
+        let image = image::open(out.join(figure)).unwrap();
+        assert!(image.width() > 0, "{figure}");
+    }
+    assert!(
+        report
+            .figures
+            .iter()
+            .any(|f| f == "trained_probe_paths.png")
+    );
+    assert!(
+        report
+            .figures
+            .iter()
+            .any(|f| f == "untrained_tps_renders.png")
+    );
+}
+
+#[test]
+fn trained_model_beats_untrained_on_tps_and_probe() {
+    let started = Instant::now();
+    let scratch = train_to_scratch();
+    let trained_at = started.elapsed().as_secs_f64();
+
+    let spec = evaluation_spec();
     let out = scratch.path().join("report");
     let report = run_evaluation(
         &spec,
@@ -147,34 +196,5 @@ fn trained_model_beats_untrained_on_tps_and_probe() {
         "probe {probe_trained} vs untrained {probe_untrained}"
     );
 
-    let json: EvaluationReport =
-        serde_json::from_slice(&std::fs::read(out.join("report.json")).unwrap()).unwrap();
-    assert_eq!(
-        (json.spec, json.figures.clone()),
-        (report.spec.clone(), report.figures.clone())
-    );
-    assert!(
-        (json.trained.tps.model.mean_translation_error
-            - report.trained.tps.model.mean_translation_error)
-            .abs()
-            < 1e-9
-    );
-    let markdown = std::fs::read_to_string(out.join("report.md")).unwrap();
-    assert!(markdown.contains("| trained | TPS |") && markdown.contains("| untrained | probe |"));
-    for figure in &report.figures {
-        let image = image::open(out.join(figure)).unwrap();
-        assert!(image.width() > 0, "{figure}");
-    }
-    assert!(
-        report
-            .figures
-            .iter()
-            .any(|f| f == "trained_probe_paths.png")
-    );
-    assert!(
-        report
-            .figures
-            .iter()
-            .any(|f| f == "untrained_tps_renders.png")
-    );
+    assert_report_files(&report, &out);
 }

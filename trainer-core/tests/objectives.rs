@@ -276,6 +276,64 @@ fn autoencode_loss_falls_with_adamw() {
     assert!(end < 0.7 * start, "loss went from {start} to {end}");
 }
 
+/// The stage-1 objective of `variant` with no mask, no self-decoding and no augmentation:
+/// what is left is the variant's own wiring of PoseEnc and Render.
+fn bare_objective(variant: ObjectiveVariant) -> Stage1Config {
+    Stage1Config {
+        unmasked_probability: 1.0,
+        self_decode_probability: 0.0,
+        augment: settings::objective::AugmentConfig {
+            jitter_probability: 0.0,
+            blur_probability: 0.0,
+            ..Default::default()
+        },
+        variant,
+        ..Stage1Config::default()
+    }
+}
+
+/// Render's per-segment latents `(B, 3, 2, Cp)` for the extra-view variants, by hand: the
+/// reference's zero, then the extra view's and the target's latents against the reference
+/// (slot 0 of an unmasked read) in both slots; `joint` reads all three views in one PoseEnc
+/// call, otherwise each view is read as a pair with the reference.
+fn latents_by_hand(
+    model: &XFactor,
+    reference: &Tensor<4>,
+    extra: &Tensor<4>,
+    target: &Tensor<4>,
+    no_mask: &Tensor<2>,
+    joint: bool,
+) -> Tensor<4> {
+    let (extra_latent, target_latent) = if joint {
+        let all = Tensor::stack::<5>(vec![reference.clone(), extra.clone(), target.clone()], 1);
+        let latents = model.pose_enc.forward_masked(all, no_mask.clone());
+        (
+            latents.clone().narrow(1, 1, 1).narrow(2, 0, 1),
+            latents.narrow(1, 2, 1).narrow(2, 0, 1),
+        )
+    } else {
+        let read = |view: &Tensor<4>| {
+            let pair = Tensor::stack::<5>(vec![reference.clone(), view.clone()], 1);
+            model
+                .pose_enc
+                .forward_masked(pair, no_mask.clone())
+                .narrow(1, 1, 1)
+                .narrow(2, 0, 1)
+        };
+        (read(extra), read(target))
+    };
+    let both_slots = |latent: Tensor<4>| Tensor::cat(vec![latent.clone(), latent], 2);
+    let extra_slots = both_slots(extra_latent);
+    Tensor::cat(
+        vec![
+            extra_slots.zeros_like(),
+            extra_slots,
+            both_slots(target_latent),
+        ],
+        1,
+    )
+}
+
 #[test]
 fn extra_view_variants_render_from_two_context_views_as_by_hand() {
     let device = Device::flex();
@@ -297,19 +355,7 @@ fn extra_view_variants_render_from_two_context_views_as_by_hand() {
         (ObjectiveVariant::ExtraViewDecoder, false),
         (ObjectiveVariant::ExtraViewEncoderDecoder, true),
     ] {
-        // No mask, no self-decoding, no augmentation: what is left is the variant's own
-        // wiring of PoseEnc and Render.
-        let objective = Stage1Config {
-            unmasked_probability: 1.0,
-            self_decode_probability: 0.0,
-            augment: settings::objective::AugmentConfig {
-                jitter_probability: 0.0,
-                blur_probability: 0.0,
-                ..Default::default()
-            },
-            variant,
-            ..Stage1Config::default()
-        };
+        let objective = bare_objective(variant);
         let batch = objective.batch_with_extra_view(&samples, 0, 0, 0, config.patch_size, &device);
         let expected_encoder = if joint { [3, 3] } else { [6, 2] };
         assert_eq!(
@@ -322,34 +368,7 @@ fn extra_view_variants_render_from_two_context_views_as_by_hand() {
             .into_scalar::<f32>();
         // By hand: the extra view's and the target's latents against the reference (slot 0
         // of an unmasked read), the reference's zero, Render from reference and extra view.
-        let (extra_latent, target_latent) = if joint {
-            let all = Tensor::stack::<5>(vec![reference.clone(), extra.clone(), target.clone()], 1);
-            let latents = model.pose_enc.forward_masked(all, no_mask.clone());
-            (
-                latents.clone().narrow(1, 1, 1).narrow(2, 0, 1),
-                latents.narrow(1, 2, 1).narrow(2, 0, 1),
-            )
-        } else {
-            let read = |view: &Tensor<4>| {
-                let pair = Tensor::stack::<5>(vec![reference.clone(), view.clone()], 1);
-                model
-                    .pose_enc
-                    .forward_masked(pair, no_mask.clone())
-                    .narrow(1, 1, 1)
-                    .narrow(2, 0, 1)
-            };
-            (read(&extra), read(&target))
-        };
-        let both_slots = |latent: Tensor<4>| Tensor::cat(vec![latent.clone(), latent], 2);
-        let extra_slots = both_slots(extra_latent);
-        let latents = Tensor::cat(
-            vec![
-                extra_slots.zeros_like(),
-                extra_slots,
-                both_slots(target_latent),
-            ],
-            1,
-        );
+        let latents = latents_by_hand(&model, &reference, &extra, &target, &no_mask, joint);
         let context = Tensor::stack::<5>(vec![reference.clone(), extra.clone()], 1);
         let prediction = model.render.forward(
             context,

@@ -28,17 +28,24 @@ fn arkit_timestamp_ms(name: &str) -> Option<u64> {
     Some(seconds.parse::<u64>().ok()? * 1000 + millis)
 }
 
-/// ARKitScenes' `raw` and `3dod` layouts.
-pub(super) fn arkitscenes(paths: &[&str]) -> Indexed {
-    // (in the training split, video) -> the folder holding `lowres_wide/` -> frames; and the folders holding
-    // a `lowres_wide.traj`.
-    let mut frames: BTreeMap<(bool, String), BTreeMap<String, Vec<String>>> = BTreeMap::new();
-    let mut trajectories: BTreeSet<String> = BTreeSet::new();
-    let mut skipped = Vec::new();
+/// ARKitScenes frames grouped by video and by copy, with the trajectories and skipped files.
+#[derive(Default)]
+struct ArkitTree {
+    /// (in the training split, video) -> the folder holding `lowres_wide/` -> frames.
+    frames: BTreeMap<(bool, String), BTreeMap<String, Vec<String>>>,
+    /// The folders holding a `lowres_wide.traj`.
+    trajectories: BTreeSet<String>,
+    /// `(video, reason)` of every file dropped.
+    skipped: Vec<(String, String)>,
+}
+
+/// Sorts `paths` into ARKitScenes videos, keeping each unpacked copy of a video apart.
+fn arkit_tree(paths: &[&str]) -> ArkitTree {
+    let mut tree = ArkitTree::default();
     for path in paths {
         let parts: Vec<&str> = path.split('/').collect();
         if parts.last() == Some(&"lowres_wide.traj") {
-            trajectories.insert(parts[..parts.len() - 1].join("/"));
+            tree.trajectories.insert(parts[..parts.len() - 1].join("/"));
             continue;
         }
         let Some(at) = parts.iter().rposition(|p| *p == "lowres_wide") else {
@@ -62,19 +69,29 @@ pub(super) fn arkitscenes(paths: &[&str]) -> Indexed {
         };
         let video = parts[video_at];
         if !is_image(name) || arkit_timestamp_ms(name).is_none() {
-            skipped.push((
+            tree.skipped.push((
                 video.to_string(),
                 format!("`{name}` is not a frame named {video}_<seconds>.<ms>.png"),
             ));
             continue;
         }
-        frames
+        tree.frames
             .entry((training, video.to_string()))
             .or_default()
             .entry(parts[..at].join("/"))
             .or_default()
             .push(path.to_string());
     }
+    tree
+}
+
+/// ARKitScenes' `raw` and `3dod` layouts.
+pub(super) fn arkitscenes(paths: &[&str]) -> Indexed {
+    let ArkitTree {
+        frames,
+        trajectories,
+        mut skipped,
+    } = arkit_tree(paths);
     let mut sequences = Vec::new();
     for ((training, video), mut copies) in frames {
         // A video unpacked twice (`raw` and `3dod`) trains once, from the copy listed first.

@@ -469,6 +469,38 @@ impl Scene {
 
     /// The shaded colour in `[0, 1]` seen along a ray (`direction` need not be unit length).
     fn trace(&self, origin: Vec3, direction: Vec3) -> Vec3 {
+        let (nearest, hit) = self.nearest_hit(origin, direction);
+        let point = add_scaled(origin, direction, nearest);
+        let (normal, texture, texture_point) = match hit {
+            Hit::Nothing => return BACKGROUND,
+            Hit::Room { axis } => {
+                let mut normal = [0.0; 3];
+                normal[axis] = -direction[axis].signum();
+                let face = 2 * axis + usize::from(direction[axis] > 0.0);
+                (normal, &self.faces[face], plane_coordinates(point, axis))
+            }
+            Hit::Object { index, axis } => {
+                let object = &self.objects[index];
+                match object.shape {
+                    Shape::Cuboid { min, .. } => {
+                        let mut normal = [0.0; 3];
+                        normal[axis] = -direction[axis].signum();
+                        let local = plane_coordinates(sub(point, min), axis);
+                        (normal, &object.texture, local)
+                    }
+                    Shape::Sphere { center, radius } => {
+                        let local = sub(point, center);
+                        (local.map(|v| v / radius), &object.texture, local)
+                    }
+                }
+            }
+        };
+        let shade = AMBIENT + DIFFUSE * (0.5 + 0.5 * dot(normal, LIGHT));
+        texture.colour(texture_point).map(|c| c * shade)
+    }
+
+    /// The ray parameter of the first surface a ray hits (infinite if none), and that surface.
+    fn nearest_hit(&self, origin: Vec3, direction: Vec3) -> (f64, Hit) {
         let inverse = direction.map(|v| 1.0 / v);
         let mut nearest = f64::INFINITY;
         let mut hit = Hit::Nothing;
@@ -526,34 +558,7 @@ impl Scene {
                 }
             }
         }
-
-        let point = add_scaled(origin, direction, nearest);
-        let (normal, texture, texture_point) = match hit {
-            Hit::Nothing => return BACKGROUND,
-            Hit::Room { axis } => {
-                let mut normal = [0.0; 3];
-                normal[axis] = -direction[axis].signum();
-                let face = 2 * axis + usize::from(direction[axis] > 0.0);
-                (normal, &self.faces[face], plane_coordinates(point, axis))
-            }
-            Hit::Object { index, axis } => {
-                let object = &self.objects[index];
-                match object.shape {
-                    Shape::Cuboid { min, .. } => {
-                        let mut normal = [0.0; 3];
-                        normal[axis] = -direction[axis].signum();
-                        let local = plane_coordinates(sub(point, min), axis);
-                        (normal, &object.texture, local)
-                    }
-                    Shape::Sphere { center, radius } => {
-                        let local = sub(point, center);
-                        (local.map(|v| v / radius), &object.texture, local)
-                    }
-                }
-            }
-        };
-        let shade = AMBIENT + DIFFUSE * (0.5 + 0.5 * dot(normal, LIGHT));
-        texture.colour(texture_point).map(|c| c * shade)
+        (nearest, hit)
     }
 }
 

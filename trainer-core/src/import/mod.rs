@@ -338,24 +338,8 @@ fn optimizer_state(
         tracing::warn!(file = %path.display(), "no optimiser state: training restarts AdamW from zero moments");
         return Ok(none);
     };
-    let count_of = |name: &str| -> Result<u64, ImportError> {
-        let leaf = state.leaves.get(name).ok_or_else(|| ImportError::Missing {
-            path: path.to_path_buf(),
-            name: name.to_string(),
-            needed_for: "the optimiser's step count",
-        })?;
-        leaf.scalar()
-            .filter(|v| *v >= 0.0)
-            .map(|v| v as u64)
-            .ok_or_else(|| ImportError::Shape {
-                path: path.to_path_buf(),
-                name: name.to_string(),
-                expected: "a non-negative scalar".to_string(),
-                found: Vec::new(),
-            })
-    };
     let adam_count = format!("{adam}count");
-    let updates = count_of(&adam_count)?;
+    let updates = optimizer_count(state, path, &adam_count)?;
     let chain = adam
         .trim_end_matches('.')
         .rsplit_once('.')
@@ -366,7 +350,7 @@ fn optimizer_state(
         .find(|name| name.starts_with(&chain) && name.ends_with(".count") && **name != adam_count)
         .cloned();
     let step = match schedule_count {
-        Some(name) => count_of(&name)?,
+        Some(name) => optimizer_count(state, path, &name)?,
         None => updates,
     };
     if state
@@ -377,6 +361,41 @@ fn optimizer_state(
     {
         tracing::warn!(file = %path.display(), "the checkpoint was saved mid gradient accumulation; the partial sum is dropped");
     }
+    let moments = adam_moments(state, path, &adam, param_names)?;
+    Ok(OptimizerState {
+        moments,
+        updates,
+        step,
+    })
+}
+
+/// A count leaf of the optax state (`name`, dotted) as a step number: it must be present and
+/// a non-negative scalar, else the error names it.
+fn optimizer_count(state: &FlaxState, path: &Path, name: &str) -> Result<u64, ImportError> {
+    let leaf = state.leaves.get(name).ok_or_else(|| ImportError::Missing {
+        path: path.to_path_buf(),
+        name: name.to_string(),
+        needed_for: "the optimiser's step count",
+    })?;
+    leaf.scalar()
+        .filter(|v| *v >= 0.0)
+        .map(|v| v as u64)
+        .ok_or_else(|| ImportError::Shape {
+            path: path.to_path_buf(),
+            name: name.to_string(),
+            expected: "a non-negative scalar".to_string(),
+            found: Vec::new(),
+        })
+}
+
+/// Adam's `<adam>mu.<param>` / `<adam>nu.<param>` for every parameter, renamed
+/// `first.<param>` / `second.<param>` in that order; each must have its parameter's shape.
+fn adam_moments(
+    state: &FlaxState,
+    path: &Path,
+    adam: &str,
+    param_names: &[String],
+) -> Result<Vec<(String, HostTensor)>, ImportError> {
     let mut moments = Vec::with_capacity(2 * param_names.len());
     for name in param_names {
         let param_shape = state
@@ -401,11 +420,7 @@ fn optimizer_state(
             moments.push((format!("{ours}.{name}"), tensor.clone()));
         }
     }
-    Ok(OptimizerState {
-        moments,
-        updates,
-        step,
-    })
+    Ok(moments)
 }
 
 /// The release's LPIPS parameters renamed to [`Lpips`]'s names: `vgg.convB_L.kernel` ->

@@ -90,38 +90,7 @@ impl Render {
         let grid = (height / self.patch_size, width / self.patch_size);
         let patches = grid.0 * grid.1;
 
-        let token_poses = match poses {
-            PoseLatents::Single(poses) => {
-                let [_, _, cp] = poses.dims();
-                poses
-                    .reshape([b, views, 1, cp])
-                    .expand([b, views, patches, cp])
-            }
-            PoseLatents::PerSegment(poses) => {
-                let [_, _, _, cp] = poses.dims();
-                let slot = |i: usize| poses.clone().narrow(2, i, 1);
-                match &mask {
-                    Some(mask) => {
-                        let m = mask.clone().reshape([b, 1, patches, 1]);
-                        slot(0) * (m.clone().neg() + 1.0) + slot(1) * m
-                    }
-                    None => slot(0).expand([b, views, patches, cp]),
-                }
-            }
-        };
-        let token_poses = match self.conditioning {
-            PoseConditioning::Latent => token_poses,
-            PoseConditioning::PluckerRays => {
-                // Every view takes the target's focal length, patch by patch (so a segment's
-                // camera keeps its own intrinsics through the swap).
-                let focal = token_poses
-                    .clone()
-                    .narrow(1, contexts, 1)
-                    .narrow(3, CAMERA_VECTOR_VALUES - 1, 1)
-                    .expand([b, views, patches, 1]);
-                plucker_tokens(token_poses, focal, self.patch_size, grid.0)
-            }
-        };
+        let token_poses = self.token_poses(poses, mask.as_ref(), b, contexts, grid);
 
         let context_patches = patchify(
             round(
@@ -158,6 +127,55 @@ impl Render {
 
         let target = z.narrow(1, contexts, 1).reshape([b, patches, c]);
         unpatchify(self.pixels(target), self.patch_size, height)
+    }
+
+    /// Pulled out of [`Self::forward`]: the pose token of every patch of every view for
+    /// `V = contexts + 1` views on a `grid` of `T` patches. Each patch takes its view's single
+    /// latent, or the latent of its segment in `mask: (B, T)` (segment 0 without a mask), giving
+    /// `(B, V, T, Cp)`; under Plücker-ray conditioning those camera vectors become ray tokens
+    /// `(B, V, T, 6 p^2)`.
+    fn token_poses(
+        &self,
+        poses: PoseLatents,
+        mask: Option<&Tensor<2>>,
+        b: usize,
+        contexts: usize,
+        grid: (usize, usize),
+    ) -> Tensor<4> {
+        let views = contexts + 1;
+        let patches = grid.0 * grid.1;
+        let token_poses = match poses {
+            PoseLatents::Single(poses) => {
+                let [_, _, cp] = poses.dims();
+                poses
+                    .reshape([b, views, 1, cp])
+                    .expand([b, views, patches, cp])
+            }
+            PoseLatents::PerSegment(poses) => {
+                let [_, _, _, cp] = poses.dims();
+                let slot = |i: usize| poses.clone().narrow(2, i, 1);
+                match mask {
+                    Some(mask) => {
+                        let m = mask.clone().reshape([b, 1, patches, 1]);
+                        slot(0) * (m.clone().neg() + 1.0) + slot(1) * m
+                    }
+                    None => slot(0).expand([b, views, patches, cp]),
+                }
+            }
+        };
+        match self.conditioning {
+            PoseConditioning::Latent => token_poses,
+            PoseConditioning::PluckerRays => {
+                // Every view takes the target's focal length, patch by patch (so a segment's
+                // camera keeps its own intrinsics through the swap).
+                let focal = token_poses
+                    .clone()
+                    .narrow(1, contexts, 1)
+                    .narrow(3, CAMERA_VECTOR_VALUES - 1, 1)
+                    .expand([b, views, patches, 1]);
+                plucker_tokens(token_poses, focal, self.patch_size, grid.0)
+            }
+        }
     }
 
     /// The target tokens `(B, T, C)` to patch pixels `(B, T, 3 p^2)` in `[-1, 1]`: final

@@ -43,6 +43,42 @@ pub struct Bundle {
     pub translations: Vec<Vector3<f64>>,
 }
 
+/// Where each free unknown of an adjustment sits in its parameter vector.
+struct Layout {
+    /// Offset of each frame's rotation increment and translation (six values), when free.
+    frames: Vec<Option<usize>>,
+    /// Offset of the first inverse depth.
+    points_at: usize,
+    /// Whether the inverse depths are free.
+    points: bool,
+    /// Number of free unknowns.
+    size: usize,
+}
+
+impl Layout {
+    /// The layout of `free`'s unknowns for `frames` frames and `points` corners.
+    fn new(free: &Free, frames: usize, points: usize) -> Self {
+        let mut offsets = vec![None; frames];
+        let mut size = 0;
+        for (frame, offset) in offsets.iter_mut().enumerate().skip(1) {
+            if free.frames[frame] {
+                *offset = Some(size);
+                size += 6;
+            }
+        }
+        let points_at = size;
+        if free.points {
+            size += points;
+        }
+        Self {
+            frames: offsets,
+            points_at,
+            points: free.points,
+            size,
+        }
+    }
+}
+
 /// Huber loss of a residual of norm `s` with threshold `delta`.
 fn huber(s: f64, delta: f64) -> f64 {
     if s <= delta {
@@ -88,93 +124,26 @@ impl Bundle {
         delta: f64,
         iterations: usize,
     ) -> f64 {
-        let mut offsets = vec![None; self.rotations.len()];
-        let mut size = 0;
-        for (frame, offset) in offsets.iter_mut().enumerate().skip(1) {
-            if free.frames[frame] {
-                *offset = Some(size);
-                size += 6;
-            }
-        }
-        let points_at = size;
-        if free.points {
-            size += self.rays.len();
-        }
+        let layout = Layout::new(free, self.rotations.len(), self.rays.len());
         let mut current = self.cost(observations, delta);
-        if size == 0 {
+        if layout.size == 0 {
             return current;
         }
         let mut damping = 1e-4;
         for _ in 0..iterations {
-            let mut h = DMatrix::<f64>::zeros(size, size);
-            let mut g = DVector::<f64>::zeros(size);
-            for o in observations {
-                let Some(r) = self.residual(o) else {
-                    continue;
-                };
-                let frame_at = offsets[o.frame];
-                let point_at = free.points.then_some(points_at + o.point);
-                if frame_at.is_none() && point_at.is_none() {
-                    continue;
-                }
-                let norm = r.norm();
-                let weight = if norm <= delta { 1.0 } else { delta / norm };
-                let (q, x) = self.in_camera(o.point, o.frame);
-                let projection = Matrix2x3::new(
-                    1.0 / x.z,
-                    0.0,
-                    -x.x / (x.z * x.z),
-                    0.0,
-                    1.0 / x.z,
-                    -x.y / (x.z * x.z),
-                );
-                // Columns: rotation increment (3), translation (3), inverse depth (1).
-                let mut columns: Vec<(usize, Vector2<f64>)> = Vec::with_capacity(7);
-                if let Some(at) = frame_at {
-                    let d_rotation = projection * -skew(&q);
-                    for k in 0..3 {
-                        columns.push((at + k, d_rotation.column(k).into_owned()));
-                        columns.push((at + 3 + k, projection.column(k).into_owned()));
-                    }
-                }
-                if let Some(at) = point_at {
-                    columns.push((at, projection * (-q / self.inverse_depths[o.point])));
-                }
-                for &(a, ja) in &columns {
-                    g[a] += weight * ja.dot(&r);
-                    for &(b, jb) in &columns {
-                        h[(a, b)] += weight * ja.dot(&jb);
-                    }
-                }
-            }
+            let (h, g) = self.normal_equations(observations, &layout, delta);
             let floor = 1e-12 * h.diagonal().max().max(1e-300);
             let mut improved = false;
             for _ in 0..10 {
                 let mut damped = h.clone();
-                for k in 0..size {
+                for k in 0..layout.size {
                     damped[(k, k)] += damping * h[(k, k)] + floor;
                 }
                 let Some(step) = damped.cholesky().map(|c| c.solve(&(-&g))) else {
                     damping *= 10.0;
                     continue;
                 };
-                let mut next = self.clone();
-                for (frame, offset) in offsets.iter().enumerate() {
-                    if let Some(at) = *offset {
-                        let omega = Vector3::new(step[at], step[at + 1], step[at + 2]);
-                        next.rotations[frame] =
-                            Rotation3::new(omega).into_inner() * self.rotations[frame];
-                        next.translations[frame] +=
-                            Vector3::new(step[at + 3], step[at + 4], step[at + 5]);
-                    }
-                }
-                if free.points {
-                    for (point, depth) in next.inverse_depths.iter_mut().enumerate() {
-                        if *depth > 0.0 {
-                            *depth += step[points_at + point];
-                        }
-                    }
-                }
+                let next = self.stepped(&step, &layout);
                 let cost = next.cost(observations, delta);
                 if cost < current {
                     let gain = (current - cost) / current.max(1e-300);
@@ -190,6 +159,88 @@ impl Bundle {
             }
         }
         current
+    }
+
+    /// The Gauss-Newton system `(JᵀWJ, JᵀWr)` of the Huber-weighted residuals over `layout`.
+    fn normal_equations(
+        &self,
+        observations: &[Observation],
+        layout: &Layout,
+        delta: f64,
+    ) -> (DMatrix<f64>, DVector<f64>) {
+        let mut h = DMatrix::<f64>::zeros(layout.size, layout.size);
+        let mut g = DVector::<f64>::zeros(layout.size);
+        for o in observations {
+            let Some(r) = self.residual(o) else {
+                continue;
+            };
+            let frame_at = layout.frames[o.frame];
+            let point_at = layout.points.then_some(layout.points_at + o.point);
+            if frame_at.is_none() && point_at.is_none() {
+                continue;
+            }
+            let norm = r.norm();
+            let weight = if norm <= delta { 1.0 } else { delta / norm };
+            let columns = self.jacobian_columns(o, frame_at, point_at);
+            for &(a, ja) in &columns {
+                g[a] += weight * ja.dot(&r);
+                for &(b, jb) in &columns {
+                    h[(a, b)] += weight * ja.dot(&jb);
+                }
+            }
+        }
+        (h, g)
+    }
+
+    /// The free columns of observation `o`'s residual Jacobian, each with its unknown's index.
+    fn jacobian_columns(
+        &self,
+        o: &Observation,
+        frame_at: Option<usize>,
+        point_at: Option<usize>,
+    ) -> Vec<(usize, Vector2<f64>)> {
+        let (q, x) = self.in_camera(o.point, o.frame);
+        let projection = Matrix2x3::new(
+            1.0 / x.z,
+            0.0,
+            -x.x / (x.z * x.z),
+            0.0,
+            1.0 / x.z,
+            -x.y / (x.z * x.z),
+        );
+        // Columns: rotation increment (3), translation (3), inverse depth (1).
+        let mut columns: Vec<(usize, Vector2<f64>)> = Vec::with_capacity(7);
+        if let Some(at) = frame_at {
+            let d_rotation = projection * -skew(&q);
+            for k in 0..3 {
+                columns.push((at + k, d_rotation.column(k).into_owned()));
+                columns.push((at + 3 + k, projection.column(k).into_owned()));
+            }
+        }
+        if let Some(at) = point_at {
+            columns.push((at, projection * (-q / self.inverse_depths[o.point])));
+        }
+        columns
+    }
+
+    /// A copy of the bundle with the free unknowns moved by `step`, laid out as in `layout`.
+    fn stepped(&self, step: &DVector<f64>, layout: &Layout) -> Bundle {
+        let mut next = self.clone();
+        for (frame, offset) in layout.frames.iter().enumerate() {
+            if let Some(at) = *offset {
+                let omega = Vector3::new(step[at], step[at + 1], step[at + 2]);
+                next.rotations[frame] = Rotation3::new(omega).into_inner() * self.rotations[frame];
+                next.translations[frame] += Vector3::new(step[at + 3], step[at + 4], step[at + 5]);
+            }
+        }
+        if layout.points {
+            for (point, depth) in next.inverse_depths.iter_mut().enumerate() {
+                if *depth > 0.0 {
+                    *depth += step[layout.points_at + point];
+                }
+            }
+        }
+        next
     }
 
     /// Depth along its frame-0 ray of corner `point` from one observation in another frame

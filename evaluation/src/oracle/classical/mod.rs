@@ -73,6 +73,15 @@ impl Default for ClassicalSettings {
     }
 }
 
+/// Frame 0's corners followed through the frames.
+struct Tracks {
+    /// Per frame, its pose against frame 0 and the frame-0 corners of its inliers, where found
+    /// (frame 0: `None`).
+    pairs: Vec<Option<(RelativePose, Vec<usize>)>>,
+    /// Every aligned corner of the later frames, as an observation of its frame-0 corner.
+    observations: Vec<Observation>,
+}
+
 /// Feature matching and essential matrices, each frame against the first.
 #[derive(Debug, Clone)]
 pub struct ClassicalOracle {
@@ -140,38 +149,15 @@ impl ClassicalOracle {
     fn focal(&self, side: usize) -> f64 {
         side as f64 / 2.0 / (self.settings.fov_degrees.to_radians() / 2.0).tan()
     }
-}
 
-/// Median of `values` (which must not be empty).
-fn median(mut values: Vec<f64>) -> f64 {
-    values.sort_by(f64::total_cmp);
-    values[values.len() / 2]
-}
-
-impl PoseOracle for ClassicalOracle {
-    fn name(&self) -> &'static str {
-        "classical"
-    }
-
-    fn estimate(&self, frames: &[Image]) -> Result<Vec<CameraPose>, OracleError> {
-        let Some(first_frame) = frames.first() else {
-            return Ok(Vec::new());
-        };
-        if frames.iter().any(|f| f.width != f.height) {
-            return Err(Self::failure("frames must be square".to_string()));
-        }
-        let side = first_frame.width;
-        let planes: Vec<Plane> = frames.iter().map(Plane::smoothed).collect();
-        let features: Vec<Vec<Feature>> = frames
-            .iter()
-            .map(|frame| detect(frame, self.settings.max_corners))
-            .collect();
+    /// Follows frame 0's corners from frame to frame and relates each later frame to frame 0.
+    fn track(&self, planes: &[Plane], features: &[Vec<Feature>], side: usize) -> Tracks {
         let first = &features[0];
         // tracked[c] = index in the current frame of frame-0 corner c, while it is followed.
         let mut tracked: Vec<Option<usize>> = (0..first.len()).map(Some).collect();
         let mut pairs = vec![None];
         let mut observations = Vec::new();
-        for index in 1..frames.len() {
+        for index in 1..features.len() {
             let links = match_features(
                 &features[index - 1],
                 &features[index],
@@ -209,12 +195,47 @@ impl PoseOracle for ClassicalOracle {
                     .ok(),
             );
         }
+        Tracks {
+            pairs,
+            observations,
+        }
+    }
+}
+
+/// Median of `values` (which must not be empty).
+fn median(mut values: Vec<f64>) -> f64 {
+    values.sort_by(f64::total_cmp);
+    values[values.len() / 2]
+}
+
+impl PoseOracle for ClassicalOracle {
+    fn name(&self) -> &'static str {
+        "classical"
+    }
+
+    fn estimate(&self, frames: &[Image]) -> Result<Vec<CameraPose>, OracleError> {
+        let Some(first_frame) = frames.first() else {
+            return Ok(Vec::new());
+        };
+        if frames.iter().any(|f| f.width != f.height) {
+            return Err(Self::failure("frames must be square".to_string()));
+        }
+        let side = first_frame.width;
+        let planes: Vec<Plane> = frames.iter().map(Plane::smoothed).collect();
+        let features: Vec<Vec<Feature>> = frames
+            .iter()
+            .map(|frame| detect(frame, self.settings.max_corners))
+            .collect();
+        let Tracks {
+            pairs,
+            observations,
+        } = self.track(&planes, &features, side);
         if frames.len() > 1 && pairs.iter().all(Option::is_none) {
             return Err(Self::failure(
                 "no frame has an essential matrix against frame 0".to_string(),
             ));
         }
-        let rays: Vec<Vector3<f64>> = first
+        let rays: Vec<Vector3<f64>> = features[0]
             .iter()
             .map(|f| self.normalised(f, side).push(1.0))
             .collect();
@@ -273,58 +294,14 @@ fn adjusted(
         rotations: vec![Matrix3::identity(); frames],
         translations: vec![Vector3::zeros(); frames],
     };
-    for (frame, own) in pairs.iter().enumerate().skip(1) {
-        let seen: Vec<Observation> = observations
-            .iter()
-            .filter(|o| o.frame == frame)
-            .copied()
-            .collect();
-        let mut free = Free {
-            frames: vec![false; frames],
-            points: false,
-        };
-        free.frames[frame] = true;
-        let mut starts = vec![(bundle.rotations[frame - 1], bundle.translations[frame - 1])];
-        if let Some(pair) = own {
-            let ratios: Vec<f64> = anchor_depths
-                .iter()
-                .zip(depths_by_corner(pair, rays.len()))
-                .filter_map(|(a, d)| Some(a.as_ref()? / d?))
-                .collect();
-            let length = if ratios.len() >= MIN_SHARED_DEPTHS {
-                median(ratios)
-            } else {
-                1.0
-            };
-            starts.push((pair.0.rotation, pair.0.direction * length));
-        }
-        let resected = starts
-            .into_iter()
-            .map(|(rotation, translation)| {
-                let mut candidate = bundle.clone();
-                candidate.rotations[frame] = rotation;
-                candidate.translations[frame] = translation;
-                let cost = candidate.adjust(&seen, &free, delta, RESECTION_ITERATIONS);
-                (cost, candidate)
-            })
-            .min_by(|a, b| a.0.total_cmp(&b.0));
-        if let Some((_, candidate)) = resected {
+    for frame in 1..frames {
+        if let Some(candidate) =
+            resected(&bundle, pairs, frame, &anchor_depths, observations, delta)
+        {
             bundle = candidate;
         }
     }
-    for point in 0..rays.len() {
-        if bundle.inverse_depths[point] > 0.0 {
-            continue;
-        }
-        let widest = observations
-            .iter()
-            .filter(|o| o.point == point)
-            .filter_map(|o| bundle.triangulate(o))
-            .max_by(|a, b| a.1.total_cmp(&b.1));
-        if let Some((depth, _)) = widest {
-            bundle.inverse_depths[point] = 1.0 / depth;
-        }
-    }
+    triangulate_missing(&mut bundle, observations);
     let free = Free {
         frames: vec![true; frames],
         points: true,
@@ -341,4 +318,68 @@ fn adjusted(
         .collect();
     bundle.adjust(&kept, &free, delta, BUNDLE_ITERATIONS);
     bundle
+}
+
+/// A copy of `bundle` with frame `frame` resected from whichever start fits it better.
+fn resected(
+    bundle: &Bundle,
+    pairs: &[Option<(RelativePose, Vec<usize>)>],
+    frame: usize,
+    anchor_depths: &[Option<f64>],
+    observations: &[Observation],
+    delta: f64,
+) -> Option<Bundle> {
+    let frames = pairs.len();
+    let seen: Vec<Observation> = observations
+        .iter()
+        .filter(|o| o.frame == frame)
+        .copied()
+        .collect();
+    let mut free = Free {
+        frames: vec![false; frames],
+        points: false,
+    };
+    free.frames[frame] = true;
+    let mut starts = vec![(bundle.rotations[frame - 1], bundle.translations[frame - 1])];
+    if let Some(pair) = &pairs[frame] {
+        let ratios: Vec<f64> = anchor_depths
+            .iter()
+            .zip(depths_by_corner(pair, bundle.rays.len()))
+            .filter_map(|(a, d)| Some(a.as_ref()? / d?))
+            .collect();
+        let length = if ratios.len() >= MIN_SHARED_DEPTHS {
+            median(ratios)
+        } else {
+            1.0
+        };
+        starts.push((pair.0.rotation, pair.0.direction * length));
+    }
+    starts
+        .into_iter()
+        .map(|(rotation, translation)| {
+            let mut candidate = bundle.clone();
+            candidate.rotations[frame] = rotation;
+            candidate.translations[frame] = translation;
+            let cost = candidate.adjust(&seen, &free, delta, RESECTION_ITERATIONS);
+            (cost, candidate)
+        })
+        .min_by(|a, b| a.0.total_cmp(&b.0))
+        .map(|(_, candidate)| candidate)
+}
+
+/// Gives each corner without an inverse depth the one triangulated from its widest-parallax view.
+fn triangulate_missing(bundle: &mut Bundle, observations: &[Observation]) {
+    for point in 0..bundle.rays.len() {
+        if bundle.inverse_depths[point] > 0.0 {
+            continue;
+        }
+        let widest = observations
+            .iter()
+            .filter(|o| o.point == point)
+            .filter_map(|o| bundle.triangulate(o))
+            .max_by(|a, b| a.1.total_cmp(&b.1));
+        if let Some((depth, _)) = widest {
+            bundle.inverse_depths[point] = 1.0 / depth;
+        }
+    }
 }

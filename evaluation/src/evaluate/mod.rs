@@ -15,16 +15,20 @@ use trainer_core::lpips::Lpips;
 use trainer_core::{XFactor, XFactorConfig, checkpoint};
 
 use crate::error::{EvalError, io_error};
-use crate::figures::{save_camera_paths, save_grid};
-use crate::inference::{pose_latents, probe_features, render_targets, transfer};
+use crate::inference::{pose_latents, probe_features, render_targets};
 use crate::metrics::{CameraMetrics, ReconstructionReport, psnr, ssim};
 use crate::oracle::{
     ClassicalOracle, ClassicalSettings, ExternalOracle, GroundTruthOracle, PoseOracle,
 };
-use crate::probe::{ProbeReport, ProbeSequence, run_probe};
+use crate::probe::{ProbeReport, ProbeSequence};
 use crate::sequences::{ProtocolSet, SequenceReport, load_protocol};
-use crate::tps::{TpsReport, draw_pairs, target_frames, transferability};
+use crate::tps::TpsReport;
+use measurements::{
+    Figures, evaluate_probe, evaluate_tps, generated_reconstruction, sequence_reconstructions,
+};
 use settings::evaluation::{EvaluationSpec, OracleSpec};
+
+mod measurements;
 
 /// Pairs drawn in the render-grid figure.
 const GRID_PAIRS: usize = 3;
@@ -183,127 +187,14 @@ fn evaluate_model(
     prefix: &str,
     figures: &mut Vec<String>,
 ) -> Result<ModelReport, EvalError> {
-    let spec = context.spec;
-    let mut save =
-        |name: String, write: &dyn Fn(&Path) -> Result<(), EvalError>| -> Result<(), EvalError> {
-            write(&context.out_dir.join(&name))?;
-            figures.push(name);
-            Ok(())
-        };
-
-    let (reconstruction, grid) = {
-        let _span = tracing::info_span!("reconstruction", model = prefix).entered();
-        let generated = context
-            .dataset
-            .sequences
-            .iter()
-            .take(spec.reconstruction_sequences)
-            .map(|s| s.frames.as_slice());
-        reconstruct(model, generated, context)?
+    let mut figures = Figures {
+        out_dir: context.out_dir,
+        names: figures,
     };
-    save(format!("{prefix}_reconstruction.png"), &|p| {
-        Ok(save_grid(&grid, p)?)
-    })?;
-    let mut sequences = Vec::new();
-    for set in &context.protocol_sets {
-        let protocol = &set.protocol;
-        let _span =
-            tracing::info_span!("sequences", model = prefix, dataset = ?protocol.kind).entered();
-        let frames = set.sequences.iter().map(|s| s.frames.as_slice());
-        let (reconstruction, grid) = reconstruct(model, frames, context)?;
-        save(
-            format!("{prefix}_sequences_{}.png", protocol.kind.name()),
-            &|p| Ok(save_grid(&grid, p)?),
-        )?;
-        sequences.push(SequenceReport {
-            kind: protocol.kind,
-            uri: protocol.uri.clone(),
-            length: protocol.length,
-            sequences: set.sequences.len(),
-            skipped_short: set.skipped_short,
-            reconstruction,
-        });
-    }
-
-    let pairs = draw_pairs(spec.seed, spec.scenes, spec.trajectories, spec.tps_pairs)?;
-    let mut grid_rows = Vec::new();
-    let tps = {
-        let _span =
-            tracing::info_span!("tps", model = prefix, oracle = context.oracle.name()).entered();
-        transferability(
-            &context.dataset,
-            &pairs,
-            spec.tps_frames,
-            context.oracle.as_ref(),
-            |source, scene| {
-                let renders = transfer(
-                    model,
-                    source,
-                    0,
-                    std::slice::from_ref(scene),
-                    &context.device,
-                )?;
-                if grid_rows.len() < 2 * GRID_PAIRS {
-                    grid_rows.push(source.to_vec());
-                    grid_rows.push(renders.clone());
-                }
-                Ok(renders)
-            },
-        )?
-    };
-    save(format!("{prefix}_tps_renders.png"), &|p| {
-        Ok(save_grid(&grid_rows, p)?)
-    })?;
-    if let Some(pair) = pairs.first() {
-        let indices = target_frames(spec.frames, spec.tps_frames);
-        let frames = crate::tps::pair_frames(&context.dataset, pair, &indices)?;
-        let renders = transfer(
-            model,
-            &frames.source,
-            0,
-            std::slice::from_ref(&frames.context),
-            &context.device,
-        )?;
-        let oracle = context.oracle.as_ref();
-        if let (Ok(reference), Ok(rendered)) =
-            (oracle.estimate(&frames.source), oracle.estimate(&renders))
-        {
-            save(format!("{prefix}_tps_paths.png"), &|p| {
-                Ok(save_camera_paths(
-                    &format!("{prefix}: transferred camera path"),
-                    &[
-                        ("source video (oracle poses)", &reference[..]),
-                        ("renders (oracle poses)", &rendered[..]),
-                    ],
-                    p,
-                )?)
-            })?;
-        }
-    }
-
-    let (probe, paths) = {
-        let _span = tracing::info_span!("probe", model = prefix).entered();
-        let (train, test) = probe_sequences(model, context)?;
-        run_probe(
-            &train,
-            &test,
-            &spec.probe,
-            spec.seed,
-            &context.device.clone().autodiff(),
-        )?
-    };
-    if let Some((reference, predicted)) = paths.first() {
-        save(format!("{prefix}_probe_paths.png"), &|p| {
-            Ok(save_camera_paths(
-                &format!("{prefix}: pose probe, held-out path"),
-                &[
-                    ("ground truth", &reference[..]),
-                    ("probe prediction", &predicted[..]),
-                ],
-                p,
-            )?)
-        })?;
-    }
+    let reconstruction = generated_reconstruction(model, context, prefix, &mut figures)?;
+    let sequences = sequence_reconstructions(model, context, prefix, &mut figures)?;
+    let tps = evaluate_tps(model, context, prefix, &mut figures)?;
+    let probe = evaluate_probe(model, context, prefix, &mut figures)?;
     Ok(ModelReport {
         reconstruction,
         tps,
@@ -325,6 +216,42 @@ pub fn run_evaluation(
     spec.validate()?;
     std::fs::create_dir_all(out_dir).map_err(|e| io_error(out_dir, e))?;
     let (model, config) = checkpoint::load(weights, device)?;
+    let context = build_context(spec, &config, device, out_dir)?;
+    let mut figures = Vec::new();
+    let trained = evaluate_model(&model, &context, "trained", &mut figures)?;
+    let untrained = if spec.compare_untrained {
+        let baseline = XFactor::new(&config, spec.seed, device)
+            .map_err(|e| EvalError::Invalid(e.to_string()))?;
+        Some(evaluate_model(
+            &baseline,
+            &context,
+            "untrained",
+            &mut figures,
+        )?)
+    } else {
+        None
+    };
+    let report = EvaluationReport {
+        checkpoint: weights.to_path_buf(),
+        spec: spec.clone(),
+        model: config,
+        trained,
+        untrained,
+        figures,
+        seconds: started.elapsed().as_secs_f64(),
+    };
+    write_report(&report, out_dir)?;
+    tracing::info!(seconds = report.seconds, dir = %out_dir.display(), "evaluation written");
+    Ok(report)
+}
+
+/// Generates the scenes and loads the real sequences, pose oracle and LPIPS both models share.
+fn build_context<'a>(
+    spec: &'a EvaluationSpec,
+    config: &XFactorConfig,
+    device: &Device,
+    out_dir: &'a Path,
+) -> Result<Context<'a>, EvalError> {
     let scene_config = SceneConfig {
         image_size: config.image_size,
         ..SceneConfig::default()
@@ -359,7 +286,7 @@ pub fn run_evaluation(
             })?),
             None => None,
         };
-    let context = Context {
+    Ok(Context {
         spec,
         oracle: oracle_for(&spec.oracle, &dataset, &scene_config),
         dataset,
@@ -367,37 +294,17 @@ pub fn run_evaluation(
         lpips,
         device: device.clone(),
         out_dir,
-    };
-    let mut figures = Vec::new();
-    let trained = evaluate_model(&model, &context, "trained", &mut figures)?;
-    let untrained = if spec.compare_untrained {
-        let baseline = XFactor::new(&config, spec.seed, device)
-            .map_err(|e| EvalError::Invalid(e.to_string()))?;
-        Some(evaluate_model(
-            &baseline,
-            &context,
-            "untrained",
-            &mut figures,
-        )?)
-    } else {
-        None
-    };
-    let report = EvaluationReport {
-        checkpoint: weights.to_path_buf(),
-        spec: spec.clone(),
-        model: config,
-        trained,
-        untrained,
-        figures,
-        seconds: started.elapsed().as_secs_f64(),
-    };
+    })
+}
+
+/// Writes `report` into `out_dir` as `report.json` and `report.md`.
+fn write_report(report: &EvaluationReport, out_dir: &Path) -> Result<(), EvalError> {
     let json_path = out_dir.join("report.json");
-    let json = serde_json::to_string_pretty(&report).map_err(|e| io_error(&json_path, e))?;
+    let json = serde_json::to_string_pretty(report).map_err(|e| io_error(&json_path, e))?;
     std::fs::write(&json_path, json).map_err(|e| io_error(&json_path, e))?;
     let md_path = out_dir.join("report.md");
-    std::fs::write(&md_path, markdown(&report)).map_err(|e| io_error(&md_path, e))?;
-    tracing::info!(seconds = report.seconds, dir = %out_dir.display(), "evaluation written");
-    Ok(report)
+    std::fs::write(&md_path, markdown(report)).map_err(|e| io_error(&md_path, e))?;
+    Ok(())
 }
 
 fn camera_cells(metrics: &CameraMetrics) -> String {

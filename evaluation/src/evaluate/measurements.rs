@@ -1,0 +1,201 @@
+//! The measurements `evaluate_model` takes of one model, each with its figures.
+
+use std::path::Path;
+
+use trainer_core::XFactor;
+
+use super::{Context, GRID_PAIRS, probe_sequences, reconstruct};
+use crate::error::EvalError;
+use crate::figures::{save_camera_paths, save_grid};
+use crate::inference::transfer;
+use crate::metrics::ReconstructionReport;
+use crate::probe::{ProbeReport, run_probe};
+use crate::sequences::SequenceReport;
+use crate::tps::{TpsPair, TpsReport, draw_pairs, target_frames, transferability};
+
+/// The figures written so far, by name relative to the output folder.
+pub(super) struct Figures<'a> {
+    /// The folder they are written into.
+    pub(super) out_dir: &'a Path,
+    /// Their names, in the order written.
+    pub(super) names: &'a mut Vec<String>,
+}
+
+impl Figures<'_> {
+    /// Writes figure `name` into the output folder with `write`, then lists it.
+    fn save(
+        &mut self,
+        name: String,
+        write: &dyn Fn(&Path) -> Result<(), EvalError>,
+    ) -> Result<(), EvalError> {
+        write(&self.out_dir.join(&name))?;
+        self.names.push(name);
+        Ok(())
+    }
+}
+
+/// Autoencoding of the first generated sequences, with its render-grid figure.
+pub(super) fn generated_reconstruction(
+    model: &XFactor,
+    context: &Context<'_>,
+    prefix: &str,
+    figures: &mut Figures<'_>,
+) -> Result<ReconstructionReport, EvalError> {
+    let (reconstruction, grid) = {
+        let _span = tracing::info_span!("reconstruction", model = prefix).entered();
+        let generated = context
+            .dataset
+            .sequences
+            .iter()
+            .take(context.spec.reconstruction_sequences)
+            .map(|s| s.frames.as_slice());
+        reconstruct(model, generated, context)?
+    };
+    figures.save(format!("{prefix}_reconstruction.png"), &|p| {
+        Ok(save_grid(&grid, p)?)
+    })?;
+    Ok(reconstruction)
+}
+
+/// Reconstruction of each protocol's real test sequences, with a render-grid figure each.
+pub(super) fn sequence_reconstructions(
+    model: &XFactor,
+    context: &Context<'_>,
+    prefix: &str,
+    figures: &mut Figures<'_>,
+) -> Result<Vec<SequenceReport>, EvalError> {
+    let mut sequences = Vec::new();
+    for set in &context.protocol_sets {
+        let protocol = &set.protocol;
+        let _span =
+            tracing::info_span!("sequences", model = prefix, dataset = ?protocol.kind).entered();
+        let frames = set.sequences.iter().map(|s| s.frames.as_slice());
+        let (reconstruction, grid) = reconstruct(model, frames, context)?;
+        figures.save(
+            format!("{prefix}_sequences_{}.png", protocol.kind.name()),
+            &|p| Ok(save_grid(&grid, p)?),
+        )?;
+        sequences.push(SequenceReport {
+            kind: protocol.kind,
+            uri: protocol.uri.clone(),
+            length: protocol.length,
+            sequences: set.sequences.len(),
+            skipped_short: set.skipped_short,
+            reconstruction,
+        });
+    }
+    Ok(sequences)
+}
+
+/// Transferability over freshly drawn pairs, with the renders and first pair's paths figures.
+pub(super) fn evaluate_tps(
+    model: &XFactor,
+    context: &Context<'_>,
+    prefix: &str,
+    figures: &mut Figures<'_>,
+) -> Result<TpsReport, EvalError> {
+    let spec = context.spec;
+    let pairs = draw_pairs(spec.seed, spec.scenes, spec.trajectories, spec.tps_pairs)?;
+    let mut grid_rows = Vec::new();
+    let tps = {
+        let _span =
+            tracing::info_span!("tps", model = prefix, oracle = context.oracle.name()).entered();
+        transferability(
+            &context.dataset,
+            &pairs,
+            spec.tps_frames,
+            context.oracle.as_ref(),
+            |source, scene| {
+                let renders = transfer(
+                    model,
+                    source,
+                    0,
+                    std::slice::from_ref(scene),
+                    &context.device,
+                )?;
+                if grid_rows.len() < 2 * GRID_PAIRS {
+                    grid_rows.push(source.to_vec());
+                    grid_rows.push(renders.clone());
+                }
+                Ok(renders)
+            },
+        )?
+    };
+    figures.save(format!("{prefix}_tps_renders.png"), &|p| {
+        Ok(save_grid(&grid_rows, p)?)
+    })?;
+    if let Some(pair) = pairs.first() {
+        save_tps_paths(model, context, prefix, pair, figures)?;
+    }
+    Ok(tps)
+}
+
+/// The oracle's camera paths of `pair`'s source video and of its transfer, when it reads both.
+fn save_tps_paths(
+    model: &XFactor,
+    context: &Context<'_>,
+    prefix: &str,
+    pair: &TpsPair,
+    figures: &mut Figures<'_>,
+) -> Result<(), EvalError> {
+    let spec = context.spec;
+    let indices = target_frames(spec.frames, spec.tps_frames);
+    let frames = crate::tps::pair_frames(&context.dataset, pair, &indices)?;
+    let renders = transfer(
+        model,
+        &frames.source,
+        0,
+        std::slice::from_ref(&frames.context),
+        &context.device,
+    )?;
+    let oracle = context.oracle.as_ref();
+    if let (Ok(reference), Ok(rendered)) =
+        (oracle.estimate(&frames.source), oracle.estimate(&renders))
+    {
+        figures.save(format!("{prefix}_tps_paths.png"), &|p| {
+            Ok(save_camera_paths(
+                &format!("{prefix}: transferred camera path"),
+                &[
+                    ("source video (oracle poses)", &reference[..]),
+                    ("renders (oracle poses)", &rendered[..]),
+                ],
+                p,
+            )?)
+        })?;
+    }
+    Ok(())
+}
+
+/// The pose probe trained on the generated training scenes, with its held-out path figure.
+pub(super) fn evaluate_probe(
+    model: &XFactor,
+    context: &Context<'_>,
+    prefix: &str,
+    figures: &mut Figures<'_>,
+) -> Result<ProbeReport, EvalError> {
+    let spec = context.spec;
+    let (probe, paths) = {
+        let _span = tracing::info_span!("probe", model = prefix).entered();
+        let (train, test) = probe_sequences(model, context)?;
+        run_probe(
+            &train,
+            &test,
+            &spec.probe,
+            spec.seed,
+            &context.device.clone().autodiff(),
+        )?
+    };
+    if let Some((reference, predicted)) = paths.first() {
+        figures.save(format!("{prefix}_probe_paths.png"), &|p| {
+            Ok(save_camera_paths(
+                &format!("{prefix}: pose probe, held-out path"),
+                &[
+                    ("ground truth", &reference[..]),
+                    ("probe prediction", &predicted[..]),
+                ],
+                p,
+            )?)
+        })?;
+    }
+    Ok(probe)
+}
