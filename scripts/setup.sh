@@ -2,6 +2,7 @@
 # Installs what the project needs beyond a Rust toolchain:
 # - a Vulkan loader and Mesa's lavapipe software device, so burn-wgpu runs (on the CPU) on
 #   machines without a GPU;
+# - patch, for the vulkan feature's fix to cubecl-spirv (scripts/build-feature.sh);
 # - ffmpeg (and ffprobe), which `xfactor transfer` uses to decode video files and to write the
 #   MP4, and which its test uses to make and measure videos;
 # - Pillow and NumPy for the system python3, which the decode benchmark's PIL peer
@@ -20,6 +21,10 @@ apt_packages=()
 
 if ! { ls /usr/share/vulkan/icd.d/lvp_icd*.json >/dev/null 2>&1 && ldconfig -p | grep -q libvulkan.so.1; }; then
     apt_packages+=(mesa-vulkan-drivers libvulkan1)
+fi
+# scripts/build-feature.sh applies the vulkan feature's fix to cubecl-spirv with it.
+if ! command -v patch >/dev/null; then
+    apt_packages+=(patch)
 fi
 if ! command -v ffmpeg >/dev/null || ! command -v ffprobe >/dev/null; then
     apt_packages+=(ffmpeg)

@@ -1,14 +1,21 @@
 #!/usr/bin/env bash
 # Entry point of the packed GPU benchmark folder (made by scripts/bench-gpu.sh). Runs on the
 # host it is copied to, without Rust or a network: first what the host offers, then, in one
-# run, our stage-1 step per compute path for the benchmark and paper models at batch 8 and at
-# the largest batch that fits, in f32 (beside the JAX peer's) and in the release's mixed
-# precision (bf16, f16). Every figure is a `key=value` line; a path that cannot run says why and the rest go on.
+# run, our stage-1 step per compute path (cpu and wgpu from the default build, vulkan and
+# libtorch from their feature builds) for the benchmark and paper models at batch 8 and at the
+# largest batch that fits, in f32 (beside the JAX peer's) and in the release's mixed precision
+# (bf16, f16). Every figure is a `key=value` line; a path that cannot run says why and the
+# rest go on.
 #   ./run.sh                 # STEPS=5 steps per measurement by default
 set -uo pipefail
 here="$(cd "$(dirname "$0")" && pwd)"
-bench="$here/model_step"
 steps="${STEPS:-5}"
+mkdir -p "$here/bin"
+for packed in "$here"/model_step-*.gz; do
+    [ -e "$packed" ] || continue
+    binary="$here/bin/$(basename "$packed" .gz)"
+    [ -x "$binary" ] || { gunzip -c "$packed" >"$binary" && chmod +x "$binary"; }
+done
 
 echo "host date=$(date -u +%F) kernel=$(uname -r) cores=$(nproc)"
 gpu=0
@@ -46,19 +53,45 @@ else
     echo "jax none (no Python here imports jax)"
 fi
 
-for path in vulkan cuda libtorch; do
-    case $path in
-    vulkan) why="burn's vulkan feature: cubecl 0.11.3 emits invalid SPIR-V (the README's GPUs section); not packed" ;;
-    cuda) why="burn's cuda feature downloads LLVM 23 at build time; our builders reach only package registries" ;;
-    libtorch) why="burn's tch feature links PyTorch 2.9.0's libtorch; not packed" ;;
-    esac
-    echo "path=$path status=not-built reason=\"$why\""
+cat "$here/not-built.txt"
+
+# The libtorch build links PyTorch 2.9.0's shared libraries: this host's torch, or the
+# project's opt-in environment (scripts/setup-libtorch.sh) on a builder.
+libtorch_ready=no
+for candidate in "${XFACTOR_TORCH_PYTHON:-}" python3 "$HOME/.cache/xfactor-dist/torch-env/bin/python"; do
+    [ -n "$candidate" ] || continue
+    version=$("$candidate" -c 'import torch; print(torch.__version__.split("+")[0])' 2>/dev/null) || continue
+    if [ "$version" = 2.9.0 ]; then
+        lib=$("$candidate" -c 'import os, torch; print(os.path.join(os.path.dirname(torch.__file__), "lib"))' 2>/dev/null)
+        export LD_LIBRARY_PATH="$lib${LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH}"
+        libtorch_ready=yes
+        break
+    fi
+    libtorch_why="the libtorch build links PyTorch 2.9.0; $candidate has torch $version"
 done
+
+# The packed binary that runs `path`, or nothing (and why on stdout) when it cannot run here.
+binary_for() { # path
+    local binary
+    case $1 in
+    cpu | wgpu) binary="$here/bin/model_step-default" ;;
+    *) binary="$here/bin/model_step-$1" ;;
+    esac
+    if [ ! -x "$binary" ]; then
+        return 1
+    fi
+    if [ "$1" = libtorch ] && [ "$libtorch_ready" != yes ]; then
+        echo "path=libtorch status=cannot-run reason=\"${libtorch_why:-no Python here imports torch 2.9.0}\"" >&2
+        return 1
+    fi
+    echo "$binary"
+}
 
 # One measurement: our step (with the JAX peer when asked), as the bench's key=value line.
 measure() { # backend model batch precision jax
-    local args=(--backend "$1" --model "$2" --batch "$3" --precision "$4" --steps "$steps"
+    local bench args=(--backend "$1" --model "$2" --batch "$3" --precision "$4" --steps "$steps"
         --skip-paper --reference "$here/xfactor_reference.py")
+    bench=$(binary_for "$1" 2>/dev/null) || return 1
     [ "$5" = jax ] || args+=(--skip-jax)
     timeout "${LIMIT_S:-900}" "$bench" "${args[@]}" 2>"$here/last-error.log" | grep '^backend='
 }
@@ -74,10 +107,14 @@ largest_batch() { # backend model
     echo "$fits"
 }
 
-paths=(cpu wgpu)
+paths=()
+candidates=(cpu wgpu vulkan libtorch)
+[ "$gpu" = 1 ] && candidates=(wgpu vulkan libtorch)
+for path in "${candidates[@]}"; do
+    binary_for "$path" >/dev/null && paths+=("$path")
+done
 models=(benchmark)
 if [ "$gpu" = 1 ]; then
-    paths=(wgpu)
     models=(benchmark paper)
 else
     echo "model=paper status=skipped reason=\"no GPU: one step of the 305M model at 256x256 takes minutes on a CPU\""
@@ -91,9 +128,7 @@ for model in "${models[@]}"; do
             [ "$max" -gt 8 ] && batches+=("$max")
         fi
         for batch in "${batches[@]}"; do
-            jax=no
-            [ "$path" = "${paths[0]}" ] && jax=jax
-            measure "$path" "$model" "$batch" f32 "$jax" ||
+            measure "$path" "$model" "$batch" f32 jax ||
                 echo "backend=$path model=$model batch=$batch status=failed reason=\"$(tail -1 "$here/last-error.log")\""
             for half in bf16 f16; do
                 measure "$path" "$model" "$batch" "$half" no

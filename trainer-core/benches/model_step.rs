@@ -270,9 +270,9 @@ fn figure(line: &str, key: &str) -> Option<f64> {
         .find_map(|pair| pair.strip_prefix(key)?.strip_prefix('=')?.parse().ok())
 }
 
-fn main() {
-    let options = parse_options();
-    let tuning = allocator::keep_freed_memory();
+/// The model the options ask for, at their precision (the release's mixed precision: its
+/// rounding points in the half type, float32 weights).
+fn model_config(options: &Options) -> (XFactorConfig, Precision) {
     let config = match options.model.as_str() {
         "benchmark" => XFactorConfig::benchmark(),
         "paper" => XFactorConfig::paper(),
@@ -284,11 +284,73 @@ fn main() {
         "f16" => Precision::F16,
         other => panic!("--precision {other}: expected f32, bf16 or f16"),
     };
-    // The release's mixed precision: its rounding points in the half type, float32 weights.
-    let config = XFactorConfig {
+    (
+        XFactorConfig {
+            precision,
+            ..config
+        },
         precision,
-        ..config
-    };
+    )
+}
+
+/// The figures of the backends that report them: the CPU process's peak resident memory, and
+/// what cubecl's pools hold after the steps (they keep the pages they reserved, so that is
+/// the device memory's high-water mark; the CPU and libtorch backends have no such pools).
+fn memory_figures(backend: Backend, device: &Device) -> String {
+    let mut figures = String::new();
+    if let (Backend::Cpu, Some(peak)) = (backend, peak_rss_bytes()) {
+        figures.push_str(&format!(" peak_host_rss_bytes={peak}"));
+    }
+    if let Some(usage) = device.memory_pool_usage() {
+        figures.push_str(&format!(
+            " device_reserved_bytes={} device_in_use_bytes={}",
+            usage.bytes_reserved, usage.bytes_in_use
+        ));
+    }
+    figures
+}
+
+/// The JAX peer's figures for the same step, and our step time over theirs.
+fn jax_figures(options: &Options, config: &XFactorConfig, step_s: f64) -> String {
+    match jax_peer(&options.reference, config, options.batch, options.steps) {
+        Ok(figures) => match figure(&figures, "jax_step_s") {
+            Some(theirs) => format!(" {figures} vs_jax={:.2}", step_s / theirs),
+            None => format!(" {figures}"),
+        },
+        Err(why) => {
+            eprintln!("jax: {why}");
+            " vs_jax=unavailable".into()
+        }
+    }
+}
+
+/// The paper model's size, build time and one batch-1 forward pass on `device`.
+fn paper_figures(device: &Device) -> String {
+    let paper = XFactorConfig::paper();
+    let start = Instant::now();
+    let big = XFactor::new(&paper, 0, device).expect("paper config is valid");
+    let build_s = start.elapsed().as_secs_f64();
+    let side = paper.image_size;
+    let pair = uniform([1, 2, side, side, 3], 2, device);
+    let start = Instant::now();
+    let poses = big.pose_enc.forward(pair.clone());
+    let image = big
+        .render
+        .forward(pair.narrow(1, 0, 1), PoseLatents::Single(poses), None);
+    let checksum = image.sum().into_scalar::<f32>();
+    let forward_s = start.elapsed().as_secs_f64();
+    assert!(checksum.is_finite());
+    let (param_bytes, optimizer_bytes) = training_bytes(big.num_params());
+    format!(
+        " paper_params={} paper_param_bytes={param_bytes} paper_optimizer_bytes={optimizer_bytes} paper_build_s={build_s:.2} paper_forward_b1_s={forward_s:.2}",
+        big.num_params()
+    )
+}
+
+fn main() {
+    let options = parse_options();
+    let tuning = allocator::keep_freed_memory();
+    let (config, precision) = model_config(&options);
     let inference = match options.backend.device() {
         Ok(device) => device,
         Err(error) => {
@@ -331,7 +393,7 @@ fn main() {
     let step_s = steps[steps.len() / 2];
     let (param_bytes, optimizer_bytes) = training_bytes(model.num_params());
     let mut line = format!(
-        "backend={} model={} precision={} batch={} shards={} params={} param_bytes={param_bytes} optimizer_bytes={optimizer_bytes} warmup_step_s={warmup:.3} step_s={step_s:.3} min_step_s={:.3} pairs_per_s={:.2}",
+        "backend={} model={} precision={} batch={} shards={} params={} param_bytes={param_bytes} optimizer_bytes={optimizer_bytes} warmup_step_s={warmup:.3} step_s={step_s:.3} min_step_s={:.3} pairs_per_s={:.2} checkpointing={}",
         options.backend.name(),
         options.model,
         precision.name(),
@@ -340,50 +402,14 @@ fn main() {
         model.num_params(),
         steps[0],
         options.batch as f64 / step_s,
-    );
-    line.push_str(&format!(
-        " checkpointing={}",
         if options.checkpointing { "on" } else { "off" }
-    ));
-    if let (Backend::Cpu, Some(peak)) = (options.backend, peak_rss_bytes()) {
-        line.push_str(&format!(" peak_host_rss_bytes={peak}"));
-    }
+    );
+    line.push_str(&memory_figures(options.backend, &inference));
     if options.jax {
-        match jax_peer(&options.reference, &config, options.batch, options.steps) {
-            Ok(figures) => {
-                let ratio = figure(&figures, "jax_step_s").map(|theirs| step_s / theirs);
-                line.push_str(&format!(" {figures}"));
-                if let Some(ratio) = ratio {
-                    line.push_str(&format!(" vs_jax={ratio:.2}"));
-                }
-            }
-            Err(why) => {
-                eprintln!("jax: {why}");
-                line.push_str(" vs_jax=unavailable");
-            }
-        }
+        line.push_str(&jax_figures(&options, &config, step_s));
     }
-
     if options.paper {
-        let paper = XFactorConfig::paper();
-        let start = Instant::now();
-        let big = XFactor::new(&paper, 0, &inference).expect("paper config is valid");
-        let build_s = start.elapsed().as_secs_f64();
-        let side = paper.image_size;
-        let pair = uniform([1, 2, side, side, 3], 2, &inference);
-        let start = Instant::now();
-        let poses = big.pose_enc.forward(pair.clone());
-        let image = big
-            .render
-            .forward(pair.narrow(1, 0, 1), PoseLatents::Single(poses), None);
-        let checksum = image.sum().into_scalar::<f32>();
-        let forward_s = start.elapsed().as_secs_f64();
-        assert!(checksum.is_finite());
-        let (param_bytes, optimizer_bytes) = training_bytes(big.num_params());
-        line.push_str(&format!(
-            " paper_params={} paper_param_bytes={param_bytes} paper_optimizer_bytes={optimizer_bytes} paper_build_s={build_s:.2} paper_forward_b1_s={forward_s:.2}",
-            big.num_params()
-        ));
+        line.push_str(&paper_figures(&inference));
     }
     println!("{line}");
 }

@@ -331,3 +331,46 @@ fn activation_checkpointing_recomputes_to_the_same_losses() {
         assert!((a - b).abs() <= 1e-6 * a.abs().max(1.0), "{a} vs {b}");
     }
 }
+
+/// Trains the tiny model for six steps on `backend` and on burn's CPU backend from the same
+/// weights and batches; the losses agree to `1e-3` relative (float32 sums in another order).
+#[cfg(any(feature = "vulkan", feature = "libtorch"))]
+fn trains_like_the_cpu_backend(backend: trainer_core::backend::Backend) {
+    use trainer_core::backend::BackendDevices;
+    let precision = settings::model::Precision::F32;
+    let steps = 6;
+    let reference = losses_on(Device::flex().autodiff(), precision, steps);
+    let device = backend.device().unwrap().autodiff();
+    let losses = losses_on(device, precision, steps);
+    let worst = losses
+        .iter()
+        .zip(&reference)
+        .map(|(b, c)| ((b - c) / c).abs())
+        .fold(0.0f32, f32::max);
+    println!(
+        "backend={backend} steps={steps} worst_relative_loss_difference={worst:.2e} cpu_first={:.5} cpu_last={:.5} {backend}_last={:.5}",
+        reference[0],
+        reference[steps - 1],
+        losses[steps - 1]
+    );
+    assert!(
+        reference[steps - 1] < reference[0],
+        "the CPU run learned nothing: {reference:?}"
+    );
+    assert!(worst < 1e-3, "{backend}: {losses:?} vs cpu {reference:?}");
+}
+
+/// libtorch's CPU device here; on a GPU host the same build trains on libtorch's CUDA.
+#[cfg(feature = "libtorch")]
+#[test]
+fn libtorch_trains_like_the_cpu_backend() {
+    trains_like_the_cpu_backend(trainer_core::backend::Backend::Libtorch);
+}
+
+/// SPIR-V kernels on the first Vulkan adapter: lavapipe on this machine, under the validation
+/// layer where `VK_INSTANCE_LAYERS` asks for it.
+#[cfg(feature = "vulkan")]
+#[test]
+fn vulkan_trains_like_the_cpu_backend() {
+    trains_like_the_cpu_backend(trainer_core::backend::Backend::Vulkan);
+}

@@ -1,0 +1,54 @@
+#!/usr/bin/env bash
+# Runs a cargo command with one of the off-by-default GPU features of trainer-core, worker and
+# evaluation (README, GPUs), preparing what that feature needs first:
+#   vulkan    cubecl-spirv 0.11.3 with scripts/patches/cubecl-spirv-0.11.3-implicit-shared-memory.patch
+#             applied, in a copy under the cache, given to cargo as a [patch] for this command only
+#             (Cargo.lock is put back afterwards, so the default build keeps crates.io's crate)
+#   libtorch  PyTorch 2.9.0 from PyPI in a virtual environment (scripts/setup-libtorch.sh)
+#   cuda      nothing: its build downloads LLVM, so it needs the internet
+# Usage: scripts/build-feature.sh FEATURE[,FEATURE] CARGO-SUBCOMMAND [ARGS...]
+#   scripts/build-feature.sh vulkan build --release -p worker --bin xfactor-worker
+#   scripts/build-feature.sh vulkan,libtorch test --release -p trainer-core --test trainer
+set -euo pipefail
+cd "$(dirname "$0")/.."
+source scripts/env.sh
+features=${1:?usage: scripts/build-feature.sh vulkan|libtorch|cuda[,...] CARGO-SUBCOMMAND [ARGS...]}
+shift
+subcommand=${1:?usage: scripts/build-feature.sh FEATURE CARGO-SUBCOMMAND [ARGS...]}
+shift
+extra=()
+for feature in ${features//,/ }; do
+    case $feature in
+    vulkan)
+        version=0.11.3
+        patch_file="$PWD/scripts/patches/cubecl-spirv-$version-implicit-shared-memory.patch"
+        patched="$(dirname "$CARGO_TARGET_DIR")/patched/cubecl-spirv-$version"
+        stamp="$patched/.xfactor-patch-$(sha256sum "$patch_file" | cut -c1-16)"
+        if [ ! -e "$stamp" ]; then
+            command -v patch >/dev/null || {
+                echo "build-feature: the vulkan fix needs \`patch\` (scripts/setup.sh installs it)" >&2
+                exit 1
+            }
+            cargo fetch --locked >/dev/null
+            source_dir=$(ls -d "${CARGO_HOME:-$HOME/.cargo}"/registry/src/*/cubecl-spirv-$version | head -1)
+            rm -rf "$patched"
+            mkdir -p "$(dirname "$patched")"
+            cp -r "$source_dir" "$patched"
+            patch --quiet -p1 -d "$patched" <"$patch_file"
+            touch "$stamp"
+        fi
+        extra=(--config "patch.crates-io.cubecl-spirv.path=\"$patched\"")
+        cp Cargo.lock "$CARGO_TARGET_DIR/Cargo.lock.before-vulkan"
+        trap 'cp "$CARGO_TARGET_DIR/Cargo.lock.before-vulkan" Cargo.lock' EXIT
+        ;;
+    libtorch)
+        eval "$(scripts/setup-libtorch.sh)"
+        ;;
+    cuda) ;;
+    *)
+        echo "build-feature: unknown feature $feature (expected vulkan, libtorch or cuda)" >&2
+        exit 2
+        ;;
+    esac
+done
+cargo "$subcommand" --features "$features" "${extra[@]}" "$@"
