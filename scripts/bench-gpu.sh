@@ -1,17 +1,19 @@
 #!/usr/bin/env bash
 # Packs the GPU benchmark into one folder of at most 64 MiB, to carry to a GPU host that has
 # no Rust and no network: the stripped x86-64 step benchmark of every GPU path this machine
-# can build, gzipped (the default build's, with burn's CPU backend and wgpu, which takes WGSL
-# through the host's Vulkan driver; the `vulkan` feature's, SPIR-V; the `libtorch` feature's,
-# which loads the host's PyTorch 2.9.0 libtorch), the JAX reference, and run.sh. Then runs that run.sh
-# here, unless --pack-only. A path that does not build is written to not-built.txt with why.
-#   scripts/bench-gpu.sh [--pack-only] [--out DIR] [--paths default,vulkan,libtorch]
+# can build, gzipped: `default` (burn's CPU backend and wgpu, which takes WGSL through the
+# host's Vulkan driver), `roads` (the vulkan and libtorch features together, the build
+# scripts/test-gpu-roads.sh makes, so the two share artifacts; it loads PyTorch 2.9.0's
+# libtorch), and on request `vulkan` alone (SPIR-V, for a host without that PyTorch; another
+# full build of burn); then the JAX reference and run.sh. Then runs that run.sh here, unless
+# --pack-only. A path that does not build is written to not-built.txt with why.
+#   scripts/bench-gpu.sh [--pack-only] [--out DIR] [--paths default,roads[,vulkan]]
 set -euo pipefail
 cd "$(dirname "$0")/.."
 source scripts/env.sh
 out="$(dirname "$CARGO_TARGET_DIR")/bench-gpu"
 run=1
-paths=default,vulkan,libtorch
+paths=default,roads
 while [ $# -gt 0 ]; do
     case $1 in
     --pack-only) run=0 ;;
@@ -46,9 +48,8 @@ for path in ${paths//,/ }; do
     case $path in
     default) command=(cargo bench -p trainer-core) ;;
     vulkan) command=(scripts/build-feature.sh vulkan bench -p trainer-core) ;;
-    # With vulkan too: the build scripts/test-gpu-roads.sh makes, so the two share artifacts.
-    libtorch) command=(scripts/build-feature.sh vulkan,libtorch bench -p trainer-core) ;;
-    *) echo "bench-gpu: unknown path $path (expected default, vulkan, libtorch)" >&2; exit 2 ;;
+    roads) command=(scripts/build-feature.sh vulkan,libtorch bench -p trainer-core) ;;
+    *) echo "bench-gpu: unknown build $path (expected default, roads, vulkan)" >&2; exit 2 ;;
     esac
     echo "bench-gpu: building $path" >&2
     if binary=$(bench_binary "${command[@]}") && [ -n "$binary" ]; then

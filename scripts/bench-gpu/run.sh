@@ -2,7 +2,7 @@
 # Entry point of the packed GPU benchmark folder (made by scripts/bench-gpu.sh). Runs on the
 # host it is copied to, without Rust or a network: first what the host offers, then, in one
 # run, our stage-1 step per compute path (cpu and wgpu from the default build, vulkan and
-# libtorch from their feature builds) for the benchmark and paper models at batch 8 and at the
+# libtorch from the feature builds) for the benchmark and paper models at batch 8 and at the
 # largest batch that fits, in f32 (beside the JAX peer's) and in the release's mixed precision
 # (bf16, f16). Every figure is a `key=value` line; a path that cannot run says why and the
 # rest go on.
@@ -70,21 +70,28 @@ for candidate in "${XFACTOR_TORCH_PYTHON:-}" python3 "$HOME/.cache/xfactor-dist/
     libtorch_why="the libtorch build links PyTorch 2.9.0; $candidate has torch $version"
 done
 
-# The packed binary that runs `path`, or nothing (and why on stdout) when it cannot run here.
+# The packed binary that runs `path` (the vulkan-only build where packed, else the roads
+# build, which needs libtorch), or nothing (and why on stderr) when it cannot run here.
 binary_for() { # path
-    local binary
+    local binary="$here/bin/model_step-roads"
     case $1 in
     cpu | wgpu) binary="$here/bin/model_step-default" ;;
-    *) binary="$here/bin/model_step-$1" ;;
+    vulkan) [ -x "$here/bin/model_step-vulkan" ] && binary="$here/bin/model_step-vulkan" ;;
     esac
     if [ ! -x "$binary" ]; then
         return 1
     fi
-    if [ "$1" = libtorch ] && [ "$libtorch_ready" != yes ]; then
-        echo "path=libtorch status=cannot-run reason=\"${libtorch_why:-no Python here imports torch 2.9.0}\"" >&2
+    if [ "$binary" = "$here/bin/model_step-roads" ] && [ "$libtorch_ready" != yes ]; then
+        echo "path=$1 status=cannot-run reason=\"the roads build loads libtorch: ${libtorch_why:-no Python here imports torch 2.9.0}\"" >&2
         return 1
     fi
     echo "$binary"
+}
+
+# The first line of the last failed measurement's stderr that says what went wrong.
+why_failed() {
+    { grep -m1 -iE 'error|panicked|unavailable' "$here/last-error.log" || tail -1 "$here/last-error.log"; } |
+        tr -d '"' | cut -c1-300
 }
 
 # One measurement: our step (with the JAX peer when asked), as the bench's key=value line.
@@ -129,9 +136,10 @@ for model in "${models[@]}"; do
         fi
         for batch in "${batches[@]}"; do
             measure "$path" "$model" "$batch" f32 jax ||
-                echo "backend=$path model=$model batch=$batch status=failed reason=\"$(tail -1 "$here/last-error.log")\""
+                echo "backend=$path model=$model batch=$batch status=failed reason=\"$(why_failed)\""
             for half in bf16 f16; do
-                measure "$path" "$model" "$batch" "$half" no
+                measure "$path" "$model" "$batch" "$half" no ||
+                    echo "backend=$path model=$model batch=$batch precision=$half status=failed reason=\"$(why_failed)\""
             done
         done
     done
