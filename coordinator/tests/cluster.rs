@@ -147,9 +147,19 @@ fn two_workers_of_four_equal_one_worker_of_eight() {
 
 #[test]
 fn two_workers_of_two_devices_equal_one_worker_of_four_devices() {
-    let (two, two_weights, _a) = train_small(2, 2, 2);
-    let (one, one_weights, _b) = train_small(1, 2, 4);
+    let (two, two_weights, two_dir) = train_small(2, 2, 2);
+    let (one, one_weights, one_dir) = train_small(1, 2, 4);
     assert_trained_alike((&two, &two_weights), (&one, &one_weights));
+    // Every step names the device it ran on, so the coordinator knows each worker's replicas.
+    for (dir, workers, replicas) in [(&two_dir, 2, 2), (&one_dir, 1, 4)] {
+        let log = std::fs::read_to_string(dir.path().join("coordinator.log")).unwrap();
+        let seen = log
+            .lines()
+            .filter(|line| line.contains("worker device"))
+            .filter(|line| line.contains(&format!("backend=cpu device=cpu replicas={replicas}")))
+            .count();
+        assert_eq!(seen, workers, "{log}");
+    }
 }
 
 fn kill_one_mid_stage(workers: usize, minimum: usize) {

@@ -4,7 +4,7 @@
 //! without a trainer.
 
 use proto::v1::{LossTerms, StepReport};
-use settings::Phase;
+use settings::{DeviceInUse, Phase};
 use telemetry::Registry;
 
 use crate::metrics;
@@ -48,6 +48,8 @@ pub struct Reporter {
     pub generation: u64,
     /// The stage it trains.
     pub stage: Phase,
+    /// The device it trains on.
+    pub device: Option<DeviceInUse>,
 }
 
 impl StepAccount {
@@ -81,6 +83,10 @@ impl StepAccount {
             skipped_frames: self.skipped_frames,
             step_s: self.seconds,
             data_wait_s: self.data_wait_s,
+            device: reporter
+                .device
+                .as_ref()
+                .map(proto::convert::device_in_use_to_wire),
             skipped_examples: if self.skipped_frames > 0 {
                 self.skipped_examples.clone()
             } else {
@@ -148,6 +154,11 @@ mod tests {
             session: "secret".into(),
             generation: 9,
             stage: Phase::Stage2,
+            device: Some(DeviceInUse {
+                backend: settings::Backend::Cpu,
+                name: "cpu".into(),
+                replicas: 2,
+            }),
         }
     }
 
@@ -159,6 +170,11 @@ mod tests {
             (4, 9, 6)
         );
         assert_eq!(report.session, "secret");
+        let device = report.device.as_ref().expect("the step names its device");
+        assert_eq!(
+            (device.backend, device.replicas),
+            (proto::v1::Device::Cpu as i32, 2)
+        );
         assert_eq!(report.phase, proto::v1::Phase::Stage2 as i32);
         let loss = report.loss.unwrap();
         assert_eq!((loss.total, loss.l1, loss.lpips), (0.5, 0.4, 0.2));

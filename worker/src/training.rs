@@ -153,6 +153,7 @@ impl StageRun<'_> {
             session: progress.session(),
             generation: self.generation,
             stage: self.work.stage,
+            device: progress.device.get(),
         };
         let ack = self
             .runtime

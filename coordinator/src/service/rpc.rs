@@ -114,8 +114,17 @@ impl Coordinator for CoordinatorService {
         self.sessions.check(report.worker_id, &report.session)?;
         async {
             let phase = phase_from_wire(report.phase, "step.phase").map_err(malformed)?;
+            let device = report
+                .device
+                .as_ref()
+                .map(|device| proto::convert::device_in_use_from_wire(device, "step.device"))
+                .transpose()
+                .map_err(malformed)?;
             let mut state = self.state.lock().await;
             state.heartbeat(report.worker_id, report.generation, None, Instant::now());
+            if let Some(device) = device {
+                state.record_device(report.worker_id, device);
+            }
             let generation_current = state.report_step(report.worker_id, phase, &report);
             if generation_current {
                 let rank0 = state.is_rank0(report.worker_id);
