@@ -77,12 +77,9 @@ impl Coordinator for CoordinatorService {
                     value: request.activity,
                 })
             })?;
-            let device = request
-                .device
-                .as_ref()
-                .map(|device| proto::convert::device_in_use_from_wire(device, "heartbeat.device"))
-                .transpose()
-                .map_err(malformed)?;
+            let device =
+                proto::convert::reported_device(request.device.as_ref(), "heartbeat.device")
+                    .map_err(malformed)?;
             let mut state = self.state.lock().await;
             let (known, generation_current) = state.heartbeat(
                 request.worker_id,
@@ -114,11 +111,7 @@ impl Coordinator for CoordinatorService {
         self.sessions.check(report.worker_id, &report.session)?;
         async {
             let phase = phase_from_wire(report.phase, "step.phase").map_err(malformed)?;
-            let device = report
-                .device
-                .as_ref()
-                .map(|device| proto::convert::device_in_use_from_wire(device, "step.device"))
-                .transpose()
+            let device = proto::convert::reported_device(report.device.as_ref(), "step.device")
                 .map_err(malformed)?;
             let mut state = self.state.lock().await;
             state.heartbeat(report.worker_id, report.generation, None, Instant::now());

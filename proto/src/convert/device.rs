@@ -30,19 +30,25 @@ pub fn device_from_wire(value: i32, field: &'static str) -> Result<DeviceChoice,
     }
 }
 
+/// The device a message may carry (heartbeats, step reports, `status`), from its wire form.
+pub fn reported_device(
+    device: Option<&v1::DeviceInUse>,
+    field: &'static str,
+) -> Result<Option<DeviceInUse>, ConvertError> {
+    device
+        .map(|device| device_in_use_from_wire(device, field))
+        .transpose()
+}
+
 /// One worker of `status`, as a `key=value` line: its id, name, device and throughput.
 pub fn worker_line(worker: &v1::WorkerSummary) -> String {
-    let device = worker
-        .device
-        .as_ref()
-        .map(|device| device_in_use_from_wire(device, "worker_list.device"));
-    let device = match device {
-        Some(Ok(device)) => format!(
+    let device = match reported_device(worker.device.as_ref(), "worker_list.device") {
+        Ok(Some(device)) => format!(
             "backend={} device={:?} replicas={}",
             device.backend, device.name, device.replicas
         ),
-        Some(Err(error)) => format!("device_error={:?}", error.to_string()),
-        None => "backend=- device=-".into(),
+        Ok(None) => "backend=- device=-".into(),
+        Err(error) => format!("device_error={:?}", error.to_string()),
     };
     format!(
         "worker={} name={:?} {device} pairs_per_s={:.2}",

@@ -20,7 +20,8 @@ mod model;
 mod work;
 
 pub use device::{
-    device_from_wire, device_in_use_from_wire, device_in_use_to_wire, device_to_wire, worker_line,
+    device_from_wire, device_in_use_from_wire, device_in_use_to_wire, device_to_wire,
+    reported_device, worker_line,
 };
 pub use work::{devices_from_wire, devices_to_wire};
 
