@@ -1,19 +1,22 @@
 #!/usr/bin/env bash
 # Packs the GPU benchmark into one folder of at most 64 MiB, to carry to a GPU host that has
-# no Rust and no network: the stripped x86-64 step benchmark of every GPU path this machine
-# can build, gzipped: `default` (burn's CPU backend and wgpu, which takes WGSL through the
-# host's Vulkan driver), `roads` (the vulkan and libtorch features together, the build
-# scripts/test-gpu-roads.sh makes, so the two share artifacts; it loads PyTorch 2.9.0's
-# libtorch), and on request `vulkan` alone (SPIR-V, for a host without that PyTorch; another
-# full build of burn); then the JAX reference and run.sh. Then runs that run.sh here, unless
-# --pack-only. A path that does not build is written to not-built.txt with why.
-#   scripts/bench-gpu.sh [--pack-only] [--out DIR] [--paths default,roads[,vulkan]]
+# no Rust and no network, then runs its run.sh here unless --pack-only. Stripped x86-64
+# binaries, gzipped:
+#   default  the step benchmark of the default build (burn's CPU backend, and wgpu: WGSL
+#            through the host's Vulkan driver), and xfactor-local and xfactor-coordinator
+#   gpu      the step benchmark and xfactor-worker built with `vulkan,cuda` (SPIR-V, and CUDA
+#            with kernels compiled by NVRTC at run time; no libtorch, so it loads on any host)
+#   roads    on request: the step benchmark of the `vulkan,libtorch,cuda` build CI tests
+#            (scripts/test-gpu-roads.sh); it loads PyTorch 2.9.0's libtorch
+# then the JAX reference and run.sh. A path that does not build is written to not-built.txt.
+# xfactor-local runs the workers beside it, so the folder's job trains on the gpu worker.
+#   scripts/bench-gpu.sh [--pack-only] [--out DIR] [--paths default,gpu[,roads]]
 set -euo pipefail
 cd "$(dirname "$0")/.."
 source scripts/env.sh
 out="$(dirname "$CARGO_TARGET_DIR")/bench-gpu"
 run=1
-paths=default,roads
+paths=default,gpu
 while [ $# -gt 0 ]; do
     case $1 in
     --pack-only) run=0 ;;
@@ -24,21 +27,34 @@ while [ $# -gt 0 ]; do
     shift
 done
 
-# The executable of the model_step bench that `$@` (a cargo command line) builds.
-bench_binary() {
-    "$@" --bench model_step --no-run --message-format=json 2>"$out/build.log" |
+# The executables that `$@` (a cargo command line that builds) writes, one path a line.
+built_executables() {
+    "$@" --message-format=json 2>"$out/build.log" |
         python3 -c 'import json,sys
 for line in sys.stdin:
     m = json.loads(line)
-    if m.get("reason") == "compiler-artifact" and m["target"]["name"] == "model_step" and m.get("executable"):
-        print(m["executable"])'
+    if m.get("reason") == "compiler-artifact" and m.get("executable"):
+        print(m["target"]["name"], m["executable"])'
 }
 
-# Strips and gzips one build's benchmark into the folder as model_step-NAME.gz.
+# Strips and gzips one executable into the folder as NAME.gz.
 pack() { # name binary
-    cp "$2" "$out/model_step-$1"
-    strip "$out/model_step-$1"
-    gzip -9 -f "$out/model_step-$1"
+    cp "$2" "$out/$1"
+    strip "$out/$1"
+    gzip -9 -f "$out/$1"
+}
+
+# Builds and packs the step benchmark of one road's build (and, with `worker`, its worker).
+pack_road() { # path feature-command... ; the bench is named model_step-PATH
+    local path=$1 name executable packed=0
+    shift
+    while read -r name executable; do
+        case $name in
+        model_step) pack "model_step-$path" "$executable"; packed=1 ;;
+        xfactor-worker | xfactor-local | xfactor-coordinator) pack "$name" "$executable" ;;
+        esac
+    done < <(built_executables "$@")
+    [ "$packed" = 1 ]
 }
 
 rm -rf "$out"
@@ -46,20 +62,24 @@ mkdir -p "$out"
 : >"$out/not-built.txt"
 for path in ${paths//,/ }; do
     case $path in
-    default) command=(cargo bench -p trainer-core) ;;
-    vulkan) command=(scripts/build-feature.sh vulkan bench -p trainer-core) ;;
-    roads) command=(scripts/build-feature.sh vulkan,libtorch bench -p trainer-core) ;;
-    *) echo "bench-gpu: unknown build $path (expected default, roads, vulkan)" >&2; exit 2 ;;
+    default) command=(cargo build --release -p trainer-core --bench model_step
+        -p coordinator --bin xfactor-local --bin xfactor-coordinator) ;;
+    gpu) command=(scripts/build-feature.sh vulkan,cuda build --release -p trainer-core
+        --bench model_step -p worker --bin xfactor-worker) ;;
+    roads) command=(scripts/build-feature.sh vulkan,libtorch,cuda build --release
+        -p trainer-core --bench model_step) ;;
+    *) echo "bench-gpu: unknown build $path (expected default, gpu, roads)" >&2; exit 2 ;;
     esac
     echo "bench-gpu: building $path" >&2
-    if binary=$(bench_binary "${command[@]}") && [ -n "$binary" ]; then
-        pack "$path" "$binary"
-    else
+    if ! pack_road "$path" "${command[@]}"; then
         echo "path=$path status=not-built reason=\"$(grep -m1 -E '^error' "$out/build.log" || tail -1 "$out/build.log")\"" >>"$out/not-built.txt"
     fi
 done
-echo "path=cuda status=not-built reason=\"burn's cuda feature downloads LLVM 23 at build time; our builders reach only package registries\"" >>"$out/not-built.txt"
 rm -f "$out/build.log"
+# A feature build leaves its worker in the shared target folder: the default one goes back.
+if [[ ",$paths," == *,gpu,* ]]; then
+    cargo build --release -p worker --bin xfactor-worker
+fi
 cp tools/reference/xfactor_reference.py scripts/bench-gpu/run.sh "$out/"
 bytes=$(du -sb "$out" | cut -f1)
 limit=$((64 * 1024 * 1024))

@@ -10,6 +10,7 @@ use data::Split;
 use data::scenes::SceneConfig;
 use data::store::DataRoot;
 use data::synthetic::SyntheticDataset;
+use settings::DeviceChoice;
 use settings::objective::ObjectiveVariant;
 
 /// Size of a local job.
@@ -77,6 +78,8 @@ pub struct LocalJob {
     pub stage2_views_keeping_render: Option<usize>,
     /// Size of the evaluation stage.
     pub evaluation: LocalEvaluation,
+    /// The device every worker trains on (`cpu` by default: two workers share one host).
+    pub device: DeviceChoice,
     /// Store settings as environment variables (`AWS_ENDPOINT`, `AWS_ALLOW_HTTP`, ...): given
     /// to the coordinator and worker processes, and used by the harness's own store access.
     pub store_env: Vec<(String, String)>,
@@ -117,6 +120,7 @@ impl LocalJob {
             stage1_peak_lr: 1e-3,
             stage2_views_keeping_render: None,
             evaluation: LocalEvaluation::default(),
+            device: DeviceChoice::Cpu,
         }
     }
 
@@ -275,8 +279,8 @@ impl LocalJob {
         }
         let _ = writeln!(
             yaml,
-            "workers:\n  expected: {}\n  minimum: {}\n  device: cpu\n  threads: 1\n  heartbeat_interval_s: 0.25\n  heartbeat_timeout_s: 3\n  regroup_grace_s: 1\n  quorum_timeout_s: 120\n  stall_timeout_s: {}",
-            self.workers, self.minimum, self.stall_timeout_s
+            "workers:\n  expected: {}\n  minimum: {}\n  device: {}\n  threads: 1\n  heartbeat_interval_s: 0.25\n  heartbeat_timeout_s: 3\n  regroup_grace_s: 1\n  quorum_timeout_s: 120\n  stall_timeout_s: {}",
+            self.workers, self.minimum, self.device, self.stall_timeout_s
         );
         yaml
     }

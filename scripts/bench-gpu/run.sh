@@ -1,21 +1,29 @@
 #!/usr/bin/env bash
 # Entry point of the packed GPU benchmark folder (made by scripts/bench-gpu.sh). Runs on the
-# host it is copied to, without Rust or a network: first what the host offers, then, in one
-# run, our stage-1 step per compute path (cpu and wgpu from the default build, vulkan and
-# libtorch from the feature builds) for the benchmark and paper models at batch 8 and at the
-# largest batch that fits, in f32 (beside the JAX peer's) and in the release's mixed precision
-# (bf16, f16). Every figure is a `key=value` line; a path that cannot run says why and the
-# rest go on.
-#   ./run.sh                 # STEPS=5 steps per measurement by default
+# host it is copied to, without Rust or a network, and ends within DEADLINE_S (default 450 s,
+# so one 8-minute GPU loan holds all of it): first what the host offers, then our stage-1 step
+# per compute path beside the JAX peer measured in the same run (on the host's best platform),
+# most telling first (cuda, then wgpu and vulkan, then libtorch; the benchmark model, then the
+# paper model at batch 8 and at the largest batch up to MAX_BATCH that fits), a real two-worker
+# job on the GPU, the release's half precisions last, and a summary table. Every figure is a
+# `key=value` line; a path that cannot run says why and the rest go on.
+#   ./run.sh      # STEPS=5 steps per measurement, DEADLINE_S=450, LIMIT_S=120 per run
 set -uo pipefail
 here="$(cd "$(dirname "$0")" && pwd)"
 steps="${STEPS:-5}"
+started=$(date +%s)
+deadline="${DEADLINE_S:-450}"
+results="$here/results.txt"
+: >"$results"
 mkdir -p "$here/bin"
-for packed in "$here"/model_step-*.gz; do
+for packed in "$here"/*.gz; do
     [ -e "$packed" ] || continue
     binary="$here/bin/$(basename "$packed" .gz)"
     [ -x "$binary" ] || { gunzip -c "$packed" >"$binary" && chmod +x "$binary"; }
 done
+
+# Seconds left before the deadline.
+left() { echo $((deadline - ($(date +%s) - started))); }
 
 echo "host date=$(date -u +%F) kernel=$(uname -r) cores=$(nproc)"
 gpu=0
@@ -29,16 +37,27 @@ if command -v nvidia-smi >/dev/null 2>&1 && nvidia-smi -L >/dev/null 2>&1; then
 else
     echo "gpu none (no nvidia-smi, or it lists no GPU)"
 fi
-icd=no
-for file in /usr/share/vulkan/icd.d/nvidia_icd*.json /etc/vulkan/icd.d/nvidia_icd*.json; do
-    [ -e "$file" ] && icd="$file"
+# The NVIDIA Vulkan ICD where the driver ships it outside the loader's default folders, and
+# the CUDA toolkit's NVRTC, which compiles the cuda road's kernels at run time.
+for icd in /usr/local/nvidia/share/vulkan/icd.d/nvidia_icd.json; do
+    [ -e "$icd" ] && export VK_DRIVER_FILES="${VK_DRIVER_FILES:-$icd}"
+done
+for cuda in "${CUDA_PATH:-}" /usr/local/cuda; do
+    if [ -n "$cuda" ] && [ -d "$cuda/lib64" ]; then
+        export LD_LIBRARY_PATH="$cuda/lib64${LD_LIBRARY_PATH:+:$LD_LIBRARY_PATH}"
+        break
+    fi
 done
 loader=no
 ldconfig -p 2>/dev/null | grep -q 'libvulkan.so.1' && loader=yes
-echo "vulkan nvidia_icd=$icd libvulkan=$loader"
+nvrtc=no
+{ ldconfig -p 2>/dev/null | grep -q libnvrtc.so || ls "${LD_LIBRARY_PATH%%:*}"/libnvrtc.so* >/dev/null 2>&1; } && nvrtc=yes
+echo "vulkan icd=${VK_DRIVER_FILES:-default} libvulkan=$loader nvrtc=$nvrtc"
 torch=$(python3 -c 'import torch; print(torch.__version__)' 2>/dev/null || echo none)
 echo "python $(python3 --version 2>&1 | tr ' ' '=') torch=$torch"
 
+# JAX beside our process on one GPU: it allocates as it goes instead of taking 75% at start.
+export XLA_PYTHON_CLIENT_PREALLOCATE=false
 jax_python=""
 for candidate in "${XFACTOR_JAX_PYTHON:-}" python3 "$HOME/.cache/xfactor-dist/jax-env/bin/python"; do
     if [ -n "$candidate" ] && "$candidate" -c 'import jax' >/dev/null 2>&1; then
@@ -47,15 +66,14 @@ for candidate in "${XFACTOR_JAX_PYTHON:-}" python3 "$HOME/.cache/xfactor-dist/ja
     fi
 done
 if [ -n "$jax_python" ]; then
-    echo "jax $("$jax_python" -c 'import jax; print("version=" + jax.__version__, "devices=" + ",".join(d.platform for d in jax.devices()))')"
+    echo "jax $("$jax_python" -c 'import jax; d = jax.devices()[0]; print("version=" + jax.__version__, "platform=" + d.platform, "device=\"" + d.device_kind + "\"")')"
     export XFACTOR_JAX_PYTHON="$jax_python"
 else
     echo "jax none (no Python here imports jax)"
 fi
-
 cat "$here/not-built.txt"
 
-# The libtorch build links PyTorch 2.9.0's shared libraries: this host's torch, or the
+# The libtorch road links PyTorch 2.9.0's shared libraries: this host's torch, or the
 # project's opt-in environment (scripts/setup-libtorch.sh) on a builder.
 libtorch_ready=no
 for candidate in "${XFACTOR_TORCH_PYTHON:-}" python3 "$HOME/.cache/xfactor-dist/torch-env/bin/python"; do
@@ -70,17 +88,17 @@ for candidate in "${XFACTOR_TORCH_PYTHON:-}" python3 "$HOME/.cache/xfactor-dist/
     libtorch_why="the libtorch build links PyTorch 2.9.0; $candidate has torch $version"
 done
 
-# The packed binary that runs `path` (the vulkan-only build where packed, else the roads
-# build, which needs libtorch), or nothing (and why on stderr) when it cannot run here.
+# The packed benchmark that runs `path`: cpu and wgpu from the default build; vulkan and cuda
+# from the `gpu` build (no libtorch), else the `roads` build, which libtorch needs.
 binary_for() { # path
-    local binary="$here/bin/model_step-roads"
+    local binary
     case $1 in
     cpu | wgpu) binary="$here/bin/model_step-default" ;;
-    vulkan) [ -x "$here/bin/model_step-vulkan" ] && binary="$here/bin/model_step-vulkan" ;;
+    vulkan | cuda) binary="$here/bin/model_step-gpu"
+        [ -x "$binary" ] || binary="$here/bin/model_step-roads" ;;
+    libtorch) binary="$here/bin/model_step-roads" ;;
     esac
-    if [ ! -x "$binary" ]; then
-        return 1
-    fi
+    [ -x "$binary" ] || return 1
     if [ "$binary" = "$here/bin/model_step-roads" ] && [ "$libtorch_ready" != yes ]; then
         echo "path=$1 status=cannot-run reason=\"the roads build loads libtorch: ${libtorch_why:-no Python here imports torch 2.9.0}\"" >&2
         return 1
@@ -88,59 +106,92 @@ binary_for() { # path
     echo "$binary"
 }
 
-# The first line of the last failed measurement's stderr that says what went wrong.
+# The first line of the last failed run's stderr that says what went wrong.
 why_failed() {
-    { grep -m1 -iE 'error|panicked|unavailable' "$here/last-error.log" || tail -1 "$here/last-error.log"; } |
+    { grep -m1 -iE 'error|panicked|unavailable|out of memory' "$here/last-error.log" || tail -1 "$here/last-error.log"; } |
         tr -d '"' | cut -c1-300
 }
 
-# One measurement: our step (with the JAX peer when asked), as the bench's key=value line.
+# One measurement: our step (with the JAX peer when asked), as the bench's key=value line,
+# kept for the summary. Fails when it cannot run, runs out of memory or out of time.
 measure() { # backend model batch precision jax
-    local bench args=(--backend "$1" --model "$2" --batch "$3" --precision "$4" --steps "$steps"
-        --skip-paper --reference "$here/xfactor_reference.py")
+    local bench limit args=(--backend "$1" --model "$2" --batch "$3" --precision "$4"
+        --steps "$steps" --skip-paper --reference "$here/xfactor_reference.py")
     bench=$(binary_for "$1" 2>/dev/null) || return 1
+    [ "$1" = cpu ] || args+=(--shards 1)
     [ "$5" = jax ] || args+=(--skip-jax)
-    timeout "${LIMIT_S:-900}" "$bench" "${args[@]}" 2>"$here/last-error.log" | grep '^backend='
+    limit=$(left)
+    [ "$limit" -gt "${LIMIT_S:-120}" ] && limit="${LIMIT_S:-120}"
+    [ "$limit" -ge 20 ] || { echo "out of time" >"$here/last-error.log"; return 1; }
+    timeout "$limit" "$bench" "${args[@]}" 2>"$here/last-error.log" | grep '^backend=' | tee -a "$results"
+    [ "${PIPESTATUS[0]}" = 0 ]
 }
 
-# The largest batch that fits: doubles from 8 while a run succeeds (each in its own process,
-# so running out of memory ends only that run).
+# Batch 8, then doubling while it fits, up to MAX_BATCH (each batch in its own process, so
+# running out of memory ends only that run); prints the largest that fitted.
 largest_batch() { # backend model
-    local batch=8 fits=0
-    while [ "$batch" -le "${MAX_BATCH:-1024}" ] && measure "$1" "$2" "$batch" f32 no >/dev/null; do
+    local batch=16 fits=8
+    while [ "$batch" -le "${MAX_BATCH:-64}" ] && measure "$1" "$2" "$batch" f32 no >/dev/null; do
         fits=$batch
         batch=$((batch * 2))
     done
-    echo "$fits"
+    echo "backend=$1 model=$2 largest_batch=$fits tried_up_to=${MAX_BATCH:-64}"
 }
 
 paths=()
-candidates=(cpu wgpu vulkan libtorch)
-[ "$gpu" = 1 ] && candidates=(wgpu vulkan libtorch)
+candidates=(cpu wgpu vulkan libtorch cuda)
+[ "$gpu" = 1 ] && candidates=(cuda wgpu vulkan libtorch)
 for path in "${candidates[@]}"; do
     binary_for "$path" >/dev/null && paths+=("$path")
 done
 models=(benchmark)
-if [ "$gpu" = 1 ]; then
-    models=(benchmark paper)
-else
-    echo "model=paper status=skipped reason=\"no GPU: one step of the 305M model at 256x256 takes minutes on a CPU\""
-fi
+[ "$gpu" = 1 ] && models=(benchmark paper)
+[ "$gpu" = 1 ] || echo "model=paper status=skipped reason=\"no GPU: one step of the 305M model at 256x256 takes minutes on a CPU\""
 for model in "${models[@]}"; do
     for path in "${paths[@]}"; do
-        batches=(8)
-        if [ "$gpu" = 1 ]; then
-            max=$(largest_batch "$path" "$model")
-            echo "backend=$path model=$model largest_batch=$max"
-            [ "$max" -gt 8 ] && batches+=("$max")
-        fi
-        for batch in "${batches[@]}"; do
-            measure "$path" "$model" "$batch" f32 jax ||
-                echo "backend=$path model=$model batch=$batch status=failed reason=\"$(why_failed)\""
-            for half in bf16 f16; do
-                measure "$path" "$model" "$batch" "$half" no ||
-                    echo "backend=$path model=$model batch=$batch precision=$half status=failed reason=\"$(why_failed)\""
-            done
-        done
+        measure "$path" "$model" 8 f32 jax ||
+            echo "backend=$path model=$model batch=8 status=failed reason=\"$(why_failed)\""
+        [ "$gpu" = 1 ] && [ "$model" = paper ] && largest_batch "$path" "$model" | tee -a "$results"
     done
 done
+
+# The system, not only a step: a coordinator and two workers on the GPU for a few hundred steps.
+job_device=cpu
+[ "$gpu" = 1 ] && job_device=cuda
+if [ -x "$here/bin/xfactor-local" ] && [ "$(left)" -gt 90 ]; then
+    job_dir=$(mktemp -d)
+    timeout $(($(left) - 30)) "$here/bin/xfactor-local" --dir "$job_dir" --device "$job_device" \
+        --workers 2 --stage1-steps "${JOB_STEPS:-300}" --stage2-steps 20 --no-evaluate \
+        2>"$here/last-error.log" | grep '^outcome=' | sed 's/^/job /' | tee -a "$results" ||
+        echo "job device=$job_device status=failed reason=\"$(why_failed)\""
+fi
+
+for path in "${paths[@]}"; do
+    for half in bf16 f16; do
+        measure "$path" benchmark 8 "$half" no >/dev/null ||
+            echo "backend=$path model=benchmark batch=8 precision=$half status=failed reason=\"$(why_failed)\""
+    done
+done
+
+echo "summary (seconds=$(( $(date +%s) - started )); ours beside JAX in the same run):"
+python3 - "$results" <<'EOF'
+import sys
+rows = []
+for line in open(sys.argv[1]):
+    fields = dict(part.split("=", 1) for part in line.split() if "=" in part)
+    if "step_s" in fields:
+        rows.append([fields.get(k, "-") for k in (
+            "backend", "model", "precision", "batch", "step_s", "pairs_per_s", "jax_step_s",
+            "vs_jax", "memory_pool_reserved_bytes", "memory_driver_process_used_bytes",
+            "jax_peak_bytes_in_use")])
+    elif "largest_batch" in fields:
+        print(f"  largest batch: {fields['backend']} {fields['model']} {fields['largest_batch']}"
+              f" (tried up to {fields['tried_up_to']})")
+    elif line.startswith("job "):
+        print("  " + line.strip())
+head = ["backend", "model", "prec", "batch", "step_s", "pairs/s", "jax_s", "ours/jax",
+        "pool_bytes", "driver_bytes", "jax_peak_bytes"]
+widths = [max(len(str(row[i])) for row in [head] + rows) for i in range(len(head))]
+for row in [head] + rows:
+    print("  " + "  ".join(str(cell).ljust(width) for cell, width in zip(row, widths)))
+EOF

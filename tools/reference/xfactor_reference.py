@@ -21,7 +21,13 @@ import time
 import jax
 
 jax.config.update("jax_enable_x64", True)
-jax.config.update("jax_platforms", "cpu")
+# Fixtures are made and validated on the CPU (float64 where the release allows it); the `bench`
+# peer runs on the host's best platform (a GPU where JAX has one), unless
+# XFACTOR_JAX_PLATFORMS names one (`cpu`, `cuda`).
+if os.environ.get("XFACTOR_JAX_PLATFORMS"):
+    jax.config.update("jax_platforms", os.environ["XFACTOR_JAX_PLATFORMS"])
+elif sys.argv[1:2] != ["bench"]:
+    jax.config.update("jax_platforms", "cpu")
 
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
@@ -506,9 +512,15 @@ def bench(cfg, steps):
         jax.block_until_ready(step(params, inp))
         times.append(time.perf_counter() - start)
     times.sort()
-    print(f"jax_version={jax.__version__} jax_device={jax.devices()[0].platform} "
+    device = jax.devices()[0]
+    stats = device.memory_stats() or {}
+    memory = " ".join(f"jax_{key}={stats[key]}" for key in ("peak_bytes_in_use", "bytes_limit")
+                      if key in stats)
+    print(f"jax_version={jax.__version__} jax_platform={device.platform} "
+          f"jax_device=\"{device.device_kind}\" "
+          f"jax_matmul_precision={jax.config.jax_default_matmul_precision or 'default'} "
           f"jax_compile_s={compile_s:.3f} jax_step_s={times[len(times) // 2]:.4f} "
-          f"jax_min_step_s={times[0]:.4f}")
+          f"jax_min_step_s={times[0]:.4f} {memory}".rstrip())
 
 
 DEFAULTS = {

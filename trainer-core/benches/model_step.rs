@@ -2,7 +2,8 @@
 //! benchmark configuration, and of the paper-scale model's construction and forward pass.
 //!
 //! `cargo bench -p trainer-core --bench model_step -- [--backend cpu|wgpu] [--steps N]
-//! [--batch B] [--shards S] [--skip-paper] [--skip-jax]`; shards default to the core count.
+//! [--batch B] [--shards S] [--skip-paper] [--skip-jax]`; shards default to the core count on
+//! the CPU backend and to 1 on the GPU backends.
 //! Prints its configuration, then one `key=value` line.
 //!
 //! In the same run it times the JAX peer (`tools/reference/xfactor_reference.py bench`: the
@@ -18,13 +19,15 @@ use burn::tensor::{Device, Tensor, TensorData};
 use data::rng::Stream;
 use settings::model::Precision;
 use trainer_core::allocator;
-use trainer_core::backend::{Backend, BackendDevices};
+use trainer_core::backend::{Backend, BackendDevices, MemoryFigures, default_shards};
 use trainer_core::model::PoseLatents;
 use trainer_core::sharded::sharded_gradients;
 use trainer_core::{XFactor, XFactorConfig};
 
 struct Options {
     backend: Backend,
+    /// Threads that split the batch; by default one per core on the CPU backend, one on a GPU
+    /// (`trainer_core::backend::default_shards`).
     shards: usize,
     steps: usize,
     batch: usize,
@@ -44,7 +47,7 @@ struct Options {
 fn parse_options() -> Options {
     let mut options = Options {
         backend: Backend::Cpu,
-        shards: std::thread::available_parallelism().map_or(1, |n| n.get()),
+        shards: 0,
         steps: 5,
         batch: 8,
         paper: true,
@@ -87,6 +90,10 @@ fn parse_options() -> Options {
             "--reference" => options.reference = args.next().expect("--reference SCRIPT.py"),
             _ => {}
         }
+    }
+    if options.shards == 0 {
+        let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
+        options.shards = default_shards(options.backend, cores);
     }
     options
 }
@@ -161,15 +168,6 @@ fn stage1_step(model: &XFactor, pair: &Tensor<5>, mask: &Tensor<2>, shards: usiz
 /// device holds whatever the backend reports.
 fn training_bytes(params: usize) -> (usize, usize) {
     (params * 4, params * 8)
-}
-
-/// This process's peak resident memory (`VmHWM`), which on the CPU backend is its device
-/// memory; `None` where the kernel does not say.
-fn peak_rss_bytes() -> Option<u64> {
-    let status = std::fs::read_to_string("/proc/self/status").ok()?;
-    let line = status.lines().find(|line| line.starts_with("VmHWM:"))?;
-    let kib: u64 = line.split_whitespace().nth(1)?.parse().ok()?;
-    Some(kib * 1024)
 }
 
 /// The Python that runs the JAX peer, when there is one.
@@ -293,23 +291,6 @@ fn model_config(options: &Options) -> (XFactorConfig, Precision) {
     )
 }
 
-/// The figures of the backends that report them: the CPU process's peak resident memory, and
-/// what cubecl's pools hold after the steps (they keep the pages they reserved, so that is
-/// the device memory's high-water mark; the CPU and libtorch backends have no such pools).
-fn memory_figures(backend: Backend, device: &Device) -> String {
-    let mut figures = String::new();
-    if let (Backend::Cpu, Some(peak)) = (backend, peak_rss_bytes()) {
-        figures.push_str(&format!(" peak_host_rss_bytes={peak}"));
-    }
-    if let Some(usage) = device.memory_pool_usage() {
-        figures.push_str(&format!(
-            " device_reserved_bytes={} device_in_use_bytes={}",
-            usage.bytes_reserved, usage.bytes_in_use
-        ));
-    }
-    figures
-}
-
 /// The JAX peer's figures for the same step, and our step time over theirs.
 fn jax_figures(options: &Options, config: &XFactorConfig, step_s: f64) -> String {
     match jax_peer(&options.reference, config, options.batch, options.steps) {
@@ -404,7 +385,9 @@ fn main() {
         options.batch as f64 / step_s,
         if options.checkpointing { "on" } else { "off" }
     );
-    line.push_str(&memory_figures(options.backend, &inference));
+    // After the steps, before the paper model is built: what this step's model and batch hold
+    // (the pools keep the pages they reserved, so theirs is the step's high-water mark).
+    line.push_str(&MemoryFigures::read(&inference).key_values());
     if options.jax {
         line.push_str(&jax_figures(&options, &config, step_s));
     }

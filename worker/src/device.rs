@@ -8,7 +8,7 @@ use std::sync::RwLock;
 
 use settings::{Backend, DeviceChoice, DeviceInUse};
 use telemetry::Registry;
-use trainer_core::backend::{Adapter, BackendDevices, HostDevices};
+use trainer_core::backend::{Adapter, BackendDevices, CudaUnavailable, HostDevices};
 
 use crate::metrics::DEVICE_INFO;
 
@@ -52,12 +52,9 @@ pub enum DeviceMissing {
         /// The adapters found on other APIs, or `none`.
         found: String,
     },
-    /// burn's CUDA backend found no device.
-    #[error(
-        "--device cuda: burn's CUDA backend found no device; is the NVIDIA driver loaded \
-         (`nvidia-smi`) and is libcuda.so on the library path?"
-    )]
-    NoCudaDevice,
+    /// burn's CUDA backend cannot run on this host (no driver, no NVRTC, no device).
+    #[error("--device cuda: {0}")]
+    NoCudaDevice(CudaUnavailable),
 }
 
 /// Resolves `choice` against `host` (the drivers' answers) for a build that has the backends
@@ -88,8 +85,10 @@ pub fn resolve_with(
             .ok_or_else(|| DeviceMissing::NoVulkanAdapter {
                 found: adapter_list(&host.adapters),
             }),
-        Backend::Cuda if host.cuda == 0 => Err(DeviceMissing::NoCudaDevice),
-        Backend::Cuda => Ok(cuda(host.cuda)),
+        Backend::Cuda => match &host.cuda {
+            Ok(count) => Ok(cuda(*count)),
+            Err(why) => Err(DeviceMissing::NoCudaDevice(why.clone())),
+        },
         Backend::Libtorch => Ok(libtorch(host.libtorch_cuda)),
     }
 }
@@ -99,8 +98,8 @@ pub fn resolve_with(
 fn best(host: &HostDevices, built: impl Fn(Backend) -> bool) -> ResolvedDevice {
     let vulkan_gpu = vulkan_adapter(host).filter(|adapter| adapter.is_gpu());
     let gpu = host.adapters.iter().find(|adapter| adapter.is_gpu());
-    if built(Backend::Cuda) && host.cuda > 0 {
-        cuda(host.cuda)
+    if let (true, Ok(count)) = (built(Backend::Cuda), &host.cuda) {
+        cuda(*count)
     } else if built(Backend::Libtorch) && host.libtorch_cuda > 0 {
         libtorch(host.libtorch_cuda)
     } else if let Some(adapter) = vulkan_gpu.filter(|_| built(Backend::Vulkan)) {
@@ -178,7 +177,7 @@ pub fn resolve(choice: DeviceChoice, registry: &Registry) -> Result<ResolvedDevi
         backend = resolved.backend.name(),
         device = %resolved.name,
         adapters = host.adapters.len(),
-        cuda = host.cuda,
+        cuda = ?host.cuda,
         libtorch_cuda = host.libtorch_cuda,
         "device"
     );

@@ -21,7 +21,10 @@ fn h100() -> Adapter {
 fn host(adapters: Vec<Adapter>, cuda: usize, libtorch_cuda: usize) -> HostDevices {
     HostDevices {
         adapters,
-        cuda,
+        cuda: match cuda {
+            0 => Err(CudaUnavailable::NoDriverLibrary),
+            count => Ok(count),
+        },
         libtorch_cuda,
     }
 }
@@ -114,6 +117,22 @@ fn a_built_backend_without_its_device_says_what_is_missing() {
     );
     let missing = resolve_with(DeviceChoice::Cuda, &metal_only, every_backend).unwrap_err();
     assert!(missing.to_string().contains("nvidia-smi"), "{missing}");
+    let driver_without_nvrtc = HostDevices {
+        cuda: Err(CudaUnavailable::NoNvrtc),
+        ..HostDevices::default()
+    };
+    let missing = resolve_with(DeviceChoice::Cuda, &driver_without_nvrtc, every_backend);
+    let message = missing.unwrap_err().to_string();
+    assert!(
+        message.starts_with("--device cuda: NVRTC (libnvrtc.so"),
+        "{message}"
+    );
+    let auto = resolve_with(DeviceChoice::Auto, &driver_without_nvrtc, every_backend).unwrap();
+    assert_eq!(
+        auto.backend,
+        Backend::Cpu,
+        "auto passes over a CUDA that cannot run"
+    );
 }
 
 #[test]

@@ -11,7 +11,7 @@ use settings::work::{TrainStart, TrainWork};
 use tokio::runtime::Runtime;
 use trainer_core::Device;
 use trainer_core::XFactor;
-use trainer_core::backend::BackendDevices;
+use trainer_core::backend::{BackendDevices, default_shards};
 use trainer_core::lpips::Lpips;
 use trainer_core::trainer::Trainer;
 
@@ -42,15 +42,15 @@ pub fn prepare(
     work: &TrainWork,
 ) -> anyhow::Result<Prepared> {
     let mut train = work.train.clone();
+    let choice = context.options.device.unwrap_or(work.device);
+    let resolved = device::resolve(choice, &context.progress.metrics)?;
+    let backend = resolved.backend;
     let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
     train.shards = context
         .options
         .threads
         .or((train.shards > 0).then_some(train.shards))
-        .unwrap_or(cores);
-    let choice = context.options.device.unwrap_or(work.device);
-    let resolved = device::resolve(choice, &context.progress.metrics)?;
-    let backend = resolved.backend;
+        .unwrap_or_else(|| default_shards(backend, cores));
     let devices = backend.devices(context.options.devices.as_ref().unwrap_or(&work.devices))?;
     context.progress.device.set(&resolved, devices.len());
     let start = fetch_start(runtime, context, work)?;

@@ -74,7 +74,8 @@ struct DaemonArgs {
     /// more time per step (the benchmark model on the CPU: 40% less peak memory, 32% slower)
     #[arg(long)]
     activation_checkpointing: bool,
-    /// Threads per micro-batch (by default the job's)
+    /// Threads per micro-batch (by default the job's; when neither says, one per core on
+    /// the CPU backend and one on a GPU)
     #[arg(long, value_name = "N")]
     threads: Option<usize>,
     /// Name in logs (by default worker-PID, or slurm-JOB-TASK under Slurm)

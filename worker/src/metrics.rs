@@ -7,15 +7,32 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::Instant;
 
 use data::{BatchSource, SampleError, Samples};
-use telemetry::Metric;
 use telemetry::histogram::SECONDS_BUCKETS;
 pub use telemetry::training::{GENERATION, GRAD_NORM, LEARNING_RATE, LOSS, STAGE, STEP};
+use telemetry::{Metric, Registry};
+use trainer_core::backend::MemoryFigures;
 
 /// The device this worker trains on (value 1; the labels say which).
 pub const DEVICE_INFO: Metric = Metric::gauge(
     "xfactor_device_info",
     "The backend and adapter this worker trains on (labels backend, name).",
 );
+/// Device memory, by where the figure comes from.
+pub const DEVICE_MEMORY: Metric = Metric::gauge(
+    "xfactor_device_memory_bytes",
+    "Device memory after the last step, by source: cubecl's pools (pool_reserved, pool_in_use), \
+     this process's resident host memory (host_resident, host_peak_resident: the device's on the \
+     CPU backend and lavapipe) and the NVIDIA driver's count (driver_device_used for GPU 0, \
+     driver_process_used for this process).",
+);
+
+/// Exports every figure `figures` has, each under its source's label.
+pub fn record_device_memory(registry: &Registry, figures: &MemoryFigures) {
+    for (source, bytes) in figures.named() {
+        registry.set(&DEVICE_MEMORY, &[("source", source)], bytes as f64);
+    }
+}
+
 /// Rank in the group.
 pub const RANK: Metric = Metric::gauge("xfactor_rank", "This worker's rank in its group.");
 /// Samples per second of this worker.
@@ -60,6 +77,12 @@ pub const HEARTBEAT_FAILURES: Metric = Metric::counter(
 pub const RESTARTS: Metric = Metric::counter(
     "xfactor_restarts_total",
     "Generations this worker left early (lost peer, cancelled, failed).",
+);
+/// Whether the worker is waiting out a failure that was not its own, by cause.
+pub const WAITING: Metric = Metric::gauge(
+    "xfactor_worker_waiting",
+    "1 while the worker waits after a generation failed by someone else's fault (label cause: \
+     peer, store, corrupt_checkpoint), before asking for work again; it never gives up on those.",
 );
 /// Distribution of step wall times (the gauge above keeps only the last).
 pub const STEP_DURATION: Metric = Metric::histogram(

@@ -5,10 +5,11 @@
 
 use std::time::Instant;
 
-use anyhow::bail;
+use anyhow::{Context, bail};
 use proto::v1::{Activity, StepAck};
 use settings::work::TrainWork;
 use tokio::runtime::Runtime;
+use trainer_core::backend::MemoryFigures;
 use trainer_core::flat::parameter_checksum;
 
 use crate::accounting::{Reporter, StepAccount, checksum_due};
@@ -68,6 +69,7 @@ pub fn train_generation(
             .step
             .store(done, std::sync::atomic::Ordering::SeqCst);
         context.progress.doing(Activity::Idle);
+        metrics::record_device_memory(registry, &MemoryFigures::read(replica_device(&replicas)?));
         let checksum = if checksum_due(done, work.checksum_every, work.total_steps) {
             Some(replica_checksum(&replicas, done)?)
         } else {
@@ -90,6 +92,12 @@ pub fn train_generation(
             return Ok(ending);
         }
     }
+}
+
+/// The device of the first replica, whose memory the metrics show.
+fn replica_device(replicas: &[crate::step::Replica]) -> anyhow::Result<&trainer_core::Device> {
+    let replica = replicas.first().context("no replica to train")?;
+    Ok(replica.trainer.device())
 }
 
 /// The parameter checksum of this worker's replicas after step `done`; they received the

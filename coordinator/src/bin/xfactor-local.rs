@@ -15,6 +15,7 @@ use coordinator::local::{LocalJob, free_port};
 use coordinator::progress;
 use proto::v1::StatusRequest;
 use proto::v1::coordinator_client::CoordinatorClient;
+use settings::DeviceChoice;
 use telemetry::logging::LogArgs;
 
 /// Folder of the run when `--dir` is not given.
@@ -70,6 +71,10 @@ struct Cli {
     /// Commit a checkpoint every N steps
     #[arg(long, value_name = "N", default_value_t = defaults().checkpoint_every)]
     checkpoint_every: u64,
+    /// Device of every worker: cpu, wgpu, vulkan, cuda, libtorch or auto (the GPU roads need a
+    /// worker built with their feature, beside this binary)
+    #[arg(long, value_name = "DEVICE", default_value = "cpu")]
+    device: DeviceChoice,
     /// Skips the evaluation stage
     #[arg(long)]
     no_evaluate: bool,
@@ -105,6 +110,7 @@ fn main() -> anyhow::Result<()> {
     job.image_size = cli.image_size;
     job.evaluate = !cli.no_evaluate;
     job.preset = cli.preset;
+    job.device = cli.device;
     if job.checkpoint_dir().exists() {
         std::fs::remove_dir_all(job.checkpoint_dir())?;
     }
@@ -170,8 +176,9 @@ fn print_figures(job: &LocalJob, seconds: f64) -> anyhow::Result<()> {
                 .join(format!("curves/stage{number}.csv")),
         );
         figures.push(format!(
-            "stage{number}_loss={first:.4}->{last:.4} stage{number}_step_s={:.4} stage{number}_allreduce_s={:.4} stage{number}_comm_share={:.3}",
+            "stage{number}_loss={first:.4}->{last:.4} stage{number}_step_s={:.4} stage{number}_pairs_per_s={:.2} stage{number}_allreduce_s={:.4} stage{number}_comm_share={:.3}",
             timed.step_s,
+            job.global_batch as f64 / timed.step_s,
             timed.allreduce_s,
             timed.allreduce_s / timed.step_s
         ));
@@ -180,9 +187,10 @@ fn print_figures(job: &LocalJob, seconds: f64) -> anyhow::Result<()> {
         figures.push(evaluation_figures(Path::new(location))?);
     }
     println!(
-        "outcome={} workers={} preset={} image_size={} global_batch={} micro_batch={} steps={} {} restarts={} checksum_mismatches={} seconds={:.1} report={}",
+        "outcome={} workers={} device={} preset={} image_size={} global_batch={} micro_batch={} steps={} {} restarts={} checksum_mismatches={} seconds={:.1} report={}",
         report["outcome"].as_str().unwrap_or("?"),
         job.workers,
+        job.device,
         job.preset,
         job.image_size,
         job.global_batch,

@@ -355,7 +355,8 @@ pub struct WorkersConfig {
     /// Which of a host's devices each worker drives, one model replica each: `all`, a count,
     /// or a list of indices (a worker's `--devices` overrides it).
     pub devices: DeviceSet,
-    /// Threads per worker for each micro-batch (0: every core of its host).
+    /// Threads per worker for each micro-batch (0: every core of its host on the CPU backend,
+    /// one on a GPU backend).
     pub threads: u64,
     /// Seconds between heartbeats.
     pub heartbeat_interval_s: NonNegative,

@@ -64,16 +64,58 @@ pub fn wgpu_adapters() -> Vec<Adapter> {
         .collect()
 }
 
-/// CUDA devices burn's CUDA backend sees; 0 in a build without the `cuda` feature.
-pub(super) fn cuda_devices() -> usize {
-    #[cfg(feature = "cuda")]
-    {
-        burn::tensor::Device::enumerate(burn::tensor::DeviceType::Cuda).len()
+/// Why burn's CUDA backend cannot run here. cubecl-cuda loads libcuda and NVRTC at run time
+/// and panics on a thread of its own when either is missing, so this is asked first.
+#[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]
+pub enum CudaUnavailable {
+    /// The binary was built without the `cuda` cargo feature.
+    #[error("this build has no `cuda` cargo feature")]
+    NotInThisBuild,
+    /// The NVIDIA driver's library does not load.
+    #[error(
+        "the NVIDIA driver's libcuda.so does not load: is the driver installed (`nvidia-smi`) \
+         and libcuda.so.1 on the library path?"
+    )]
+    NoDriverLibrary,
+    /// NVRTC, which compiles every kernel of this build at run time, does not load.
+    #[error(
+        "NVRTC (libnvrtc.so of the CUDA toolkit, which compiles this build's kernels at run \
+         time) does not load: add the toolkit's lib64 (e.g. /usr/local/cuda/lib64) to \
+         LD_LIBRARY_PATH"
+    )]
+    NoNvrtc,
+    /// The driver loaded but refused to start or to count devices.
+    #[error("the CUDA driver failed: {0}")]
+    Driver(String),
+    /// The driver runs and reports no device.
+    #[error("the CUDA driver reports no device")]
+    NoDevice,
+}
+
+/// How many CUDA devices burn's CUDA backend can use, or why it cannot run here.
+#[cfg(feature = "cuda")]
+pub fn cuda_device_count() -> Result<usize, CudaUnavailable> {
+    use cudarc::driver::result;
+    // SAFETY: both only try to dlopen the library's candidate names; no symbol is called.
+    if !unsafe { cudarc::driver::sys::is_culib_present() } {
+        return Err(CudaUnavailable::NoDriverLibrary);
     }
-    #[cfg(not(feature = "cuda"))]
-    {
-        0
+    if !unsafe { cudarc::nvrtc::sys::is_culib_present() } {
+        return Err(CudaUnavailable::NoNvrtc);
     }
+    let driver_failed = |error: result::DriverError| CudaUnavailable::Driver(error.to_string());
+    result::init().map_err(driver_failed)?;
+    let count = result::device::get_count().map_err(driver_failed)?;
+    match usize::try_from(count) {
+        Ok(0) | Err(_) => Err(CudaUnavailable::NoDevice),
+        Ok(count) => Ok(count),
+    }
+}
+
+/// How many CUDA devices burn's CUDA backend can use: none in a build without `cuda`.
+#[cfg(not(feature = "cuda"))]
+pub fn cuda_device_count() -> Result<usize, CudaUnavailable> {
+    Err(CudaUnavailable::NotInThisBuild)
 }
 
 /// CUDA devices the installed PyTorch's libtorch sees; 0 without CUDA or without the
@@ -91,14 +133,25 @@ pub(super) fn libtorch_cuda_devices() -> usize {
 
 /// A snapshot of what this host offers the backends of this build, for `auto` to choose
 /// from and for errors to describe.
-#[derive(Debug, Clone, Default, PartialEq, Eq)]
+#[derive(Debug, Clone, PartialEq, Eq)]
 pub struct HostDevices {
     /// The wgpu adapters (Vulkan, Metal, DX12), in the drivers' order.
     pub adapters: Vec<Adapter>,
-    /// CUDA devices of burn's CUDA backend (0 without the `cuda` feature).
-    pub cuda: usize,
+    /// CUDA devices of burn's CUDA backend, or why it cannot run here.
+    pub cuda: Result<usize, CudaUnavailable>,
     /// CUDA devices of the installed libtorch (0 without CUDA or the `libtorch` feature).
     pub libtorch_cuda: usize,
+}
+
+/// A host with no device at all (burn's CPU backend only).
+impl Default for HostDevices {
+    fn default() -> Self {
+        Self {
+            adapters: Vec::new(),
+            cuda: Err(CudaUnavailable::NotInThisBuild),
+            libtorch_cuda: 0,
+        }
+    }
 }
 
 impl HostDevices {
@@ -107,7 +160,7 @@ impl HostDevices {
     pub fn probe() -> Self {
         Self {
             adapters: wgpu_adapters(),
-            cuda: cuda_devices(),
+            cuda: cuda_device_count(),
             libtorch_cuda: libtorch_cuda_devices(),
         }
     }

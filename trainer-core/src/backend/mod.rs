@@ -3,9 +3,13 @@
 //! an error that names the feature, never a panic inside burn.
 
 mod host;
+mod memory;
 
 use burn::tensor::{Device, DeviceKind};
-pub use host::{Adapter, AdapterKind, HostDevices, wgpu_adapters};
+pub use host::{
+    Adapter, AdapterKind, CudaUnavailable, HostDevices, cuda_device_count, wgpu_adapters,
+};
+pub use memory::MemoryFigures;
 pub use settings::Backend;
 
 /// The `--backend` flag of the binaries that run the model in one process.
@@ -41,6 +45,9 @@ pub enum DeviceError {
         /// How many devices it has.
         count: usize,
     },
+    /// burn's CUDA backend cannot run on this host.
+    #[error("cuda: {0}")]
+    Cuda(#[from] CudaUnavailable),
 }
 
 /// Making burn devices of a [`Backend`], as far as this build's cargo features allow.
@@ -79,13 +86,28 @@ impl BackendDevices for Backend {
         }
         let count = device_count(self);
         match set {
-            DeviceSet::All => (0..count).map(|id| device_at(self, id, count)).collect(),
+            // At least device 0 is asked for, so a backend with none says why.
+            DeviceSet::All => (0..count.max(1))
+                .map(|id| device_at(self, id, count))
+                .collect(),
             DeviceSet::Count(replicas) if count == 1 && on_one_host_device(self) => {
                 Ok(vec![self.device()?; *replicas])
             }
             DeviceSet::Count(wanted) => (0..*wanted).map(|id| device_at(self, id, count)).collect(),
             DeviceSet::Ids(ids) => ids.iter().map(|&id| device_at(self, id, count)).collect(),
         }
+    }
+}
+
+/// How many threads split a micro-batch when neither the job nor the worker says: one per core
+/// on burn's CPU backend, whose element-wise kernels run on one thread each, so shards on
+/// threads use the other cores. One elsewhere: a GPU runs one shard's kernels as fast as
+/// several, and on cubecl's runtimes every thread that launches work gets its own stream and
+/// memory pools, so sixteen shards on a sixteen-core GPU host hold sixteen sets of buffers.
+pub fn default_shards(backend: Backend, cores: usize) -> usize {
+    match backend {
+        Backend::Cpu => cores.max(1),
+        Backend::Wgpu | Backend::Vulkan | Backend::Cuda | Backend::Libtorch => 1,
     }
 }
 
@@ -108,7 +130,7 @@ fn device_count(backend: Backend) -> usize {
             .filter(|adapter| adapter.kind == AdapterKind::DiscreteGpu)
             .count()
             .max(1),
-        Backend::Cuda => host::cuda_devices(),
+        Backend::Cuda => host::cuda_device_count().unwrap_or(0),
         Backend::Libtorch => host::libtorch_cuda_devices().max(1),
     }
 }
@@ -131,9 +153,11 @@ fn device_at(backend: Backend, id: usize, count: usize) -> Result<Device, Device
         Backend::Cpu => Err(missing),
         Backend::Wgpu => Ok(Device::wgpu(wgpu_kind(id))),
         Backend::Vulkan => vulkan(id).ok_or(missing),
-        Backend::Cuda if id < count => cuda(id).ok_or(missing),
+        Backend::Cuda => match host::cuda_device_count()? {
+            count if id < count => cuda(id).ok_or(missing),
+            _ => Err(missing),
+        },
         Backend::Libtorch => libtorch(id).ok_or(missing),
-        Backend::Cuda => Err(missing),
     }
 }
 
@@ -205,6 +229,46 @@ mod tests {
                 count: 1
             }
         );
+    }
+
+    /// On a host without the NVIDIA driver (CI's, this project's machines) a `cuda` build refuses
+    /// every way of asking for a CUDA device with the missing library's name, where cubecl-cuda
+    /// alone would panic on its own thread.
+    #[cfg(feature = "cuda")]
+    #[test]
+    fn cuda_without_its_driver_is_refused_naming_the_library() {
+        let Err(why) = cuda_device_count() else {
+            return; // a host with a working CUDA driver: nothing to refuse
+        };
+        assert_ne!(why, CudaUnavailable::NotInThisBuild);
+        let expected = DeviceError::Cuda(why.clone());
+        assert_eq!(Backend::Cuda.device().unwrap_err(), expected);
+        for set in [DeviceSet::All, DeviceSet::Count(2), DeviceSet::Ids(vec![1])] {
+            assert_eq!(
+                Backend::Cuda.devices(&set).unwrap_err(),
+                expected,
+                "{set:?}"
+            );
+        }
+        let message = expected.to_string();
+        assert!(
+            message.contains("libcuda.so") || message.contains("libnvrtc.so"),
+            "{message}"
+        );
+    }
+
+    #[test]
+    fn only_the_cpu_backend_splits_a_batch_over_the_cores_by_default() {
+        assert_eq!(default_shards(Backend::Cpu, 16), 16);
+        assert_eq!(default_shards(Backend::Cpu, 0), 1);
+        for gpu in [
+            Backend::Wgpu,
+            Backend::Vulkan,
+            Backend::Cuda,
+            Backend::Libtorch,
+        ] {
+            assert_eq!(default_shards(gpu, 16), 1, "{gpu}");
+        }
     }
 
     #[test]

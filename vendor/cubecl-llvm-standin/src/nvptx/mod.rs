@@ -1,0 +1,3 @@
+//! The NVPTX names cubecl-cuda uses.
+
+pub mod ptx_version;

@@ -1,0 +1,3 @@
+//! Target-independent names cubecl-cuda uses.
+
+pub mod lowered_features;
