@@ -17,10 +17,8 @@ use crate::context::{Ending, WorkerContext};
 use crate::options::{WorkerOptions, WorkerTls};
 use crate::progress::Progress;
 use crate::session::{AwaitError, Client, await_assignment, connect, heartbeats, leave, register};
+use crate::streaks::{AfterFailure, FailureStreaks, jitter};
 use crate::{device, evaluate, failure, health, metrics, shutdown, training};
-
-/// Consecutive generations that may fail before the worker gives up.
-const MAX_CONSECUTIVE_FAILURES: u32 = 8;
 
 /// Runs the worker until the job finishes. Blocking; owns its async runtime.
 pub fn run(options: WorkerOptions) -> anyhow::Result<()> {
@@ -95,11 +93,11 @@ struct Daemon<'a> {
 }
 
 impl Daemon<'_> {
-    /// Awaits assignments and does them until the job is finished, SIGTERM arrives or too
-    /// many generations in a row failed.
+    /// Awaits assignments and does them until the job is finished, SIGTERM arrives or this
+    /// worker failed too many generations in a row by its own fault (`streaks`).
     fn serve(mut self) -> anyhow::Result<()> {
         let mut after = 0;
-        let mut failures = 0;
+        let mut streaks = FailureStreaks::default();
         let mut failure: Option<GenerationFailure> = None;
         loop {
             let Some(waited) = self.next_assignment(after, failure.take().as_ref()) else {
@@ -124,7 +122,7 @@ impl Daemon<'_> {
             after = assignment.generation;
             match self.work(&assignment) {
                 Ok(Some(Ending::Done)) => {
-                    failures = 0;
+                    streaks.succeeded();
                     tracing::info!("generation {after} done");
                 }
                 Ok(Some(Ending::Stopping)) => {
@@ -140,10 +138,7 @@ impl Daemon<'_> {
                     tracing::info!("the job is finished");
                     return Ok(());
                 }
-                Err(error) => {
-                    failures += 1;
-                    failure = Some(self.failed(&error, failures)?);
-                }
+                Err(error) => failure = Some(self.failed(&error, &mut streaks)?),
             }
         }
     }
@@ -184,17 +179,48 @@ impl Daemon<'_> {
         }
     }
 
-    /// Counts a failed generation and builds the report the next request for work carries;
-    /// gives up after [`MAX_CONSECUTIVE_FAILURES`] in a row.
-    fn failed(&self, error: &anyhow::Error, failures: u32) -> anyhow::Result<GenerationFailure> {
-        self.context
-            .progress
-            .metrics
-            .add(&metrics::RESTARTS, &[], 1.0);
+    /// Counts a failed generation, waits as `streaks` decides when the fault was someone
+    /// else's, and builds the report the next request for work carries; gives up only after
+    /// [`crate::streaks::MAX_OWN_FAILURES`] own failures in a row.
+    fn failed(
+        &self,
+        error: &anyhow::Error,
+        streaks: &mut FailureStreaks,
+    ) -> anyhow::Result<GenerationFailure> {
+        let progress = self.context.progress;
+        progress.metrics.add(&metrics::RESTARTS, &[], 1.0);
         let report = failure::report(error);
         tracing::warn!(error = %report.reason, cause = ?report.cause, "generation abandoned");
-        if failures >= MAX_CONSECUTIVE_FAILURES {
-            bail!("{failures} generations in a row failed; last error: {error:#}");
+        let draw = jitter(progress.worker_id(), streaks.in_a_row() + 1);
+        match streaks.failed(&report.cause, draw) {
+            AfterFailure::GiveUp { own_in_a_row } => {
+                bail!(
+                    "{own_in_a_row} generations in a row failed by this worker's own fault; last error: {error:#}"
+                )
+            }
+            AfterFailure::Retry {
+                pause,
+                blame,
+                in_a_row,
+            } if !pause.is_zero() => {
+                tracing::warn!(
+                    cause = blame.name(),
+                    in_a_row,
+                    pause_s = pause.as_secs_f64(),
+                    "not this worker's fault: waiting, then asking for work again"
+                );
+                let waiting = [("cause", blame.name())];
+                progress.metrics.set(&metrics::WAITING, &waiting, 1.0);
+                let shutdown = self.context.shutdown;
+                self.runtime.block_on(async {
+                    tokio::select! {
+                        () = tokio::time::sleep(pause) => {}
+                        () = shutdown.cancelled() => {}
+                    }
+                });
+                progress.metrics.set(&metrics::WAITING, &waiting, 0.0);
+            }
+            AfterFailure::Retry { .. } => {}
         }
         Ok(report)
     }

@@ -45,10 +45,8 @@ fn collective_cause(error: &CollectiveError) -> FailureCause {
         CollectiveError::Connect { rank, .. }
         | CollectiveError::PeerGone { rank }
         | CollectiveError::InboundBroken { rank, .. }
-        | CollectiveError::Timeout { rank, .. } => FailureCause::Peer { rank: *rank },
-        CollectiveError::BadChunk { sender, .. } => FailureCause::Peer {
-            rank: *sender as usize,
-        },
+        | CollectiveError::Timeout { rank, .. }
+        | CollectiveError::BadChunk { rank, .. } => FailureCause::Peer { rank: *rank },
         CollectiveError::Cancelled | CollectiveError::Aborted(_) | CollectiveError::Tls(_) => {
             FailureCause::Worker
         }
@@ -92,7 +90,7 @@ mod tests {
         .context("all-reduce of step 7");
         assert_eq!(cause(&timeout), FailureCause::Peer { rank: 2 });
         let bad = anyhow::Error::new(CollectiveError::BadChunk {
-            sender: 1,
+            rank: 1,
             detail: "12 values, expected 16".into(),
         });
         assert_eq!(cause(&bad), FailureCause::Peer { rank: 1 });

@@ -6,7 +6,8 @@
 //! and stepped through `trainer-core`'s public API. The layers, from the process down (each
 //! imports only layers below it; `ARCHITECTURE.md` has the picture):
 //!
-//! - `daemon`: the loop over assignments; `failure`: whose fault a failed generation was.
+//! - `daemon`: the loop over assignments; `failure`: whose fault a failed generation was;
+//!   `streaks`: whether to go on after it (only own faults can end a worker).
 //! - `training`, `evaluate`: one generation's work; `generation` prepares a training one.
 //! - `step`: one optimizer step over the worker's replicas; `accounting`: its books.
 //! - `commits`: when rank 0 commits, and the commit in flight; `checkpoints`: the transfers.
@@ -34,6 +35,7 @@ mod progress;
 mod session;
 mod shutdown;
 mod step;
+mod streaks;
 mod training;
 
 pub use daemon::run;

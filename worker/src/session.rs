@@ -107,9 +107,13 @@ pub async fn register(
         .write()
         .unwrap_or_else(std::sync::PoisonError::into_inner) = reply.session;
     tracing::info!(worker = reply.worker_id, job = %reply.job_name, collective = %address, "registered");
-    Ok(Duration::from_secs_f64(
-        reply.heartbeat_interval_s.max(0.05),
-    ))
+    // A floor of 50 ms keeps heartbeats from becoming a busy loop whatever the reply says.
+    let interval = proto::convert::seconds_from_wire(
+        reply.heartbeat_interval_s,
+        0.0,
+        "RegisterReply.heartbeat_interval_s",
+    )?;
+    Ok(interval.max(Duration::from_millis(50)))
 }
 
 /// Why no assignment came.

@@ -161,10 +161,49 @@ async fn a_chunk_of_the_wrong_size_is_refused_by_name() {
     let _ = rogue.push(pushed(vec![chunk], &secret(1))).await;
     let (result, _) = honest.await.unwrap();
     match result {
-        Err(CollectiveError::BadChunk { sender, detail }) => {
-            assert_eq!(sender, 1);
+        Err(CollectiveError::BadChunk { rank, detail }) => {
+            assert_eq!(rank, 1);
             assert!(detail.contains("196 bytes"), "{detail}");
             assert!(detail.contains("expected 200"), "{detail}");
+        }
+        other => panic!("expected a bad-chunk error, got {other:?}"),
+    }
+}
+
+/// A member holding rank 1's ring secret writes chunks claiming to come from rank 0, the
+/// receiver itself: the blame goes to the rank whose authenticated stream delivered them.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_forged_sender_field_blames_the_stream_that_delivered_it() {
+    let (address_0, mailbox_0) = serve().await;
+    let (address_1, _) = serve().await;
+    let peers = vec![address_0.clone(), address_1];
+    let (_cancel, cancelled) = watch::channel(false);
+    let honest = tokio::spawn(async move {
+        let mut ring = join(&mailbox_0, 0, &peers, 3, cancelled).await;
+        let mut values = vec![1.0f32; 100];
+        ring.all_reduce(&mut values).await
+    });
+    let channel = tonic::transport::Endpoint::from_shared(format!("http://{address_0}"))
+        .unwrap()
+        .connect()
+        .await
+        .unwrap();
+    let mut forger =
+        CollectiveClient::with_interceptor(channel, proto::AttachToken::new(TOKEN).unwrap());
+    let forged = Chunk {
+        generation: 3,
+        operation: 0,
+        ring_step: 0,
+        segment: 1,
+        offset: 50,
+        values: Bytes::from(vec![0u8; 4 * 50]),
+        sender: 0,
+    };
+    let _ = forger.push(pushed(vec![forged], &secret(1))).await;
+    match honest.await.unwrap() {
+        Err(CollectiveError::BadChunk { rank, detail }) => {
+            assert_eq!(rank, 1, "the forger, not the rank it named");
+            assert!(detail.contains("claiming to be from rank 0"), "{detail}");
         }
         other => panic!("expected a bad-chunk error, got {other:?}"),
     }

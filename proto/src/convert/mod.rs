@@ -54,6 +54,26 @@ fn required<T>(value: Option<T>, field: &'static str) -> Result<T, ConvertError>
     value.ok_or(ConvertError::Missing(field))
 }
 
+/// The longest interval or timeout a message may carry: 30 days, the cluster YAML's bound.
+pub const MAX_WIRE_SECONDS: f64 = 30.0 * 24.0 * 3600.0;
+
+/// A duration the wire carries as seconds, checked before it becomes a `Duration` (whose
+/// constructor panics on infinity, NaN or a negative number): finite, at least `least`, at
+/// most [`MAX_WIRE_SECONDS`].
+pub fn seconds_from_wire(
+    seconds: f64,
+    least: f64,
+    field: &'static str,
+) -> Result<std::time::Duration, ConvertError> {
+    let malformed = |reason: String| ConvertError::Malformed { field, reason };
+    if !(least..=MAX_WIRE_SECONDS).contains(&seconds) {
+        return Err(malformed(format!(
+            "{seconds} seconds is not within [{least}, {MAX_WIRE_SECONDS}]"
+        )));
+    }
+    std::time::Duration::try_from_secs_f64(seconds).map_err(|error| malformed(error.to_string()))
+}
+
 /// Sizes travel as `u64`; this side's `usize` is at least that wide on every supported host.
 fn size(value: u64) -> usize {
     value as usize

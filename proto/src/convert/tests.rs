@@ -192,3 +192,29 @@ fn missing_parts_and_unknown_values_are_named() {
     );
     assert!(phase_from_wire(17, "x").is_err());
 }
+
+#[test]
+fn seconds_from_the_wire_never_panic_and_name_their_field() {
+    for bad in [
+        f64::INFINITY,
+        f64::NEG_INFINITY,
+        f64::NAN,
+        -1.0,
+        1e300,
+        MAX_WIRE_SECONDS * 2.0,
+    ] {
+        let error = seconds_from_wire(bad, 0.0, "reply.interval_s").unwrap_err();
+        assert!(
+            error
+                .to_string()
+                .starts_with("`reply.interval_s` is malformed"),
+            "{error}"
+        );
+    }
+    assert!(seconds_from_wire(0.001, 0.01, "reply.interval_s").is_err());
+    assert_eq!(
+        seconds_from_wire(0.5, 0.0, "reply.interval_s").unwrap(),
+        std::time::Duration::from_millis(500)
+    );
+    assert!(seconds_from_wire(MAX_WIRE_SECONDS, 0.0, "reply.interval_s").is_ok());
+}

@@ -57,10 +57,12 @@ pub enum CollectiveError {
         reason: String,
     },
     /// A chunk did not match what the ring expected.
-    #[error("rank {sender} sent a bad chunk: {detail}")]
+    #[error("rank {rank} sent a bad chunk: {detail}")]
     BadChunk {
-        /// The sender.
-        sender: u32,
+        /// The rank whose authenticated stream delivered it: the left neighbour, the only one
+        /// whose ring secret this rank's inbox admits (never the chunk's own `sender` field,
+        /// which its writer chose).
+        rank: usize,
         /// What was wrong.
         detail: String,
     },
@@ -369,17 +371,12 @@ impl Ring {
         begin: usize,
         end: usize,
     ) -> Result<(), CollectiveError> {
-        let bad = |detail: String| {
-            Err(CollectiveError::BadChunk {
-                sender: chunk.sender,
-                detail,
-            })
-        };
-        let expected_bytes = (end - begin) * 4;
         let left = (self.rank + self.world - 1) % self.world;
+        let bad = |detail: String| Err(CollectiveError::BadChunk { rank: left, detail });
+        let expected_bytes = (end - begin) * 4;
         if chunk.sender as usize != left {
             return bad(format!(
-                "a chunk from rank {} in the stream of the left neighbour, rank {left}",
+                "its stream carried a chunk claiming to be from rank {}",
                 chunk.sender
             ));
         }
