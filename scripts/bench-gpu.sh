@@ -3,9 +3,11 @@
 # no Rust and no network, then runs its run.sh here unless --pack-only. Stripped x86-64
 # binaries, gzipped:
 #   default  the step benchmark of the default build (burn's CPU backend, and wgpu: WGSL
-#            through the host's Vulkan driver), and xfactor-local and xfactor-coordinator
+#            through the host's Vulkan driver), xfactor-local, xfactor-coordinator and the
+#            default xfactor-worker
 #   gpu      the step benchmark and xfactor-worker built with `vulkan,cuda` (SPIR-V, and CUDA
-#            with kernels compiled by NVRTC at run time; no libtorch, so it loads on any host)
+#            with kernels compiled by NVRTC at run time; no libtorch, so it loads on any host);
+#            its worker replaces the default one in the folder
 #   roads    on request: the step benchmark of the `vulkan,libtorch,cuda` build CI tests
 #            (scripts/test-gpu-roads.sh); it loads PyTorch 2.9.0's libtorch
 # then the JAX reference and run.sh. A path that does not build is written to not-built.txt.
@@ -63,7 +65,7 @@ mkdir -p "$out"
 for path in ${paths//,/ }; do
     case $path in
     default) command=(cargo build --release -p trainer-core --bench model_step
-        -p coordinator --bin xfactor-local --bin xfactor-coordinator) ;;
+        -p coordinator --bin xfactor-local --bin xfactor-coordinator -p worker --bin xfactor-worker) ;;
     gpu) command=(scripts/build-feature.sh vulkan,cuda build --release -p trainer-core
         --bench model_step -p worker --bin xfactor-worker) ;;
     roads) command=(scripts/build-feature.sh vulkan,libtorch,cuda build --release

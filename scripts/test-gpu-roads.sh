@@ -22,7 +22,7 @@ mkdir -p "$roads"
 cp "$CARGO_TARGET_DIR/release/xfactor-worker" "$roads/xfactor-worker"
 # --device cuda without a driver: refused before joining, naming the library, exit 1, no panic.
 set +e
-refusal=$("$roads/xfactor-worker" --device cuda --coordinator http://127.0.0.1:9 --no-slurm 2>&1)
+refusal=$("$roads/xfactor-worker" --device cuda --coordinator http://127.0.0.1:9 --token t --no-slurm 2>&1)
 code=$?
 set -e
 if [ "$code" != 1 ] || ! grep -q 'libcuda.so\|libnvrtc.so' <<<"$refusal" || grep -q panicked <<<"$refusal"; then

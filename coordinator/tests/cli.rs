@@ -139,6 +139,7 @@ fn help_lists_every_flag_with_its_default() {
             ("--global-batch", Some(&global_batch)),
             ("--micro-batch", Some(&micro_batch)),
             ("--checkpoint-every", Some(&checkpoint_every)),
+            ("--device", Some("cpu")),
             ("--no-evaluate", None),
             ("--prepare-only", None),
             ("--port", None),
@@ -169,6 +170,7 @@ fn bad_values_are_refused_naming_the_flag() {
     );
     help::assert_refused(LOCAL, &["--workers", "two"], "--workers");
     help::assert_refused(LOCAL, &["--preset", "huge"], "--preset");
+    help::assert_refused(LOCAL, &["--device", "tpu"], "--device");
 }
 
 #[test]

@@ -19,7 +19,9 @@ use burn::tensor::{Device, Tensor, TensorData};
 use data::rng::Stream;
 use settings::model::Precision;
 use trainer_core::allocator;
-use trainer_core::backend::{Backend, BackendDevices, MemoryFigures, default_shards};
+use trainer_core::backend::{
+    Backend, BackendDevices, MemoryFigures, count_kernels, default_shards,
+};
 use trainer_core::model::PoseLatents;
 use trainer_core::sharded::sharded_gradients;
 use trainer_core::{XFactor, XFactorConfig};
@@ -367,8 +369,9 @@ fn main() {
     let mask = two_quadrant_mask(options.batch, config.grid_side(), &device);
 
     let warmup = stage1_step(&model, &pair, &mask, options.shards);
-    let mut steps: Vec<f64> = (0..options.steps)
-        .map(|_| stage1_step(&model, &pair, &mask, options.shards))
+    let (counted, kernels) = count_kernels(|| stage1_step(&model, &pair, &mask, options.shards));
+    let mut steps: Vec<f64> = std::iter::once(counted)
+        .chain((1..options.steps).map(|_| stage1_step(&model, &pair, &mask, options.shards)))
         .collect();
     steps.sort_by(f64::total_cmp);
     let step_s = steps[steps.len() / 2];
@@ -385,6 +388,15 @@ fn main() {
         options.batch as f64 / step_s,
         if options.checkpointing { "on" } else { "off" }
     );
+    // Launches of cubecl's runtimes in one step (none on the CPU backend and libtorch).
+    if kernels.total() > 0 {
+        line.push_str(&format!(
+            " kernels_per_step={} kernel_kinds={} top_kernels={}",
+            kernels.total(),
+            kernels.kinds.len(),
+            kernels.top(6)
+        ));
+    }
     // After the steps, before the paper model is built: what this step's model and batch hold
     // (the pools keep the pages they reserved, so theirs is the step's high-water mark).
     line.push_str(&MemoryFigures::read(&inference).key_values());

@@ -179,6 +179,17 @@ fn durations_and_counts_out_of_bounds_are_refused_with_key_and_line() {
     assert!(huge.contains("workers.heartbeat_timeout_s"), "{huge}");
     assert!(huge.contains("30 days"), "{huge}");
     assert!(huge.contains("line 26"), "{huge}");
+    for key in [
+        "heartbeat_interval_s",
+        "heartbeat_timeout_s",
+        "quorum_timeout_s",
+        "regroup_grace_s",
+        "stall_timeout_s",
+        "exclusion_s",
+    ] {
+        let error = error_of(&format!("{GOOD}workers:\n  {key}: 1e300\n"));
+        assert!(error.contains(&format!("workers.{key}")), "{error}");
+    }
     let crowd = error_of(&format!("{GOOD}workers:\n  expected: 100000\n"));
     assert!(crowd.contains("workers.expected"), "{crowd}");
     let small = error_of(&format!("{GOOD}workers:\n  expected: 16\n"));

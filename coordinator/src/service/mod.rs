@@ -11,6 +11,7 @@ use telemetry::Registry;
 use tokio::sync::{Mutex, Notify};
 use tokio_util::sync::CancellationToken;
 
+use crate::config::NonNegative;
 use crate::job::{JobState, Report, StepRecord, Timing};
 use crate::metrics;
 use crate::plan::Plan;
@@ -58,12 +59,29 @@ struct Recorders {
     board: tensorboard::TensorBoard,
 }
 
+/// `workers.<key>` as a `Duration`: the loader bounds every such key (`config/checks.rs`),
+/// and a configuration built otherwise is refused here rather than panicking.
+fn duration(key: &'static str, seconds: NonNegative) -> Result<Duration, ServeError> {
+    Duration::try_from_secs_f64(seconds.0).map_err(|error| ServeError::Duration {
+        key,
+        reason: error.to_string(),
+    })
+}
+
 /// Why a job could not run.
 #[derive(Debug, thiserror::Error)]
 pub enum ServeError {
     /// The listen address is not `host:port`.
     #[error("listen address `{0}` is not host:port")]
     Address(String),
+    /// A duration of `workers:` that no clock holds.
+    #[error("workers.{key}: {reason}")]
+    Duration {
+        /// The key under `workers:`.
+        key: &'static str,
+        /// Why it is not a duration.
+        reason: String,
+    },
     /// The checkpoint store could not be opened.
     #[error("checkpoint store")]
     OpenStore(#[source] StoreError),
@@ -140,11 +158,11 @@ impl CoordinatorService {
         }
         let workers = &config.workers;
         let timing = Timing {
-            heartbeat_timeout: Duration::from_secs_f64(workers.heartbeat_timeout_s.0),
-            quorum_timeout: Duration::from_secs_f64(workers.quorum_timeout_s.0),
-            regroup_grace: Duration::from_secs_f64(workers.regroup_grace_s.0),
-            stall_timeout: Duration::from_secs_f64(workers.stall_timeout_s.0),
-            exclusion: Duration::from_secs_f64(workers.exclusion_s.0),
+            heartbeat_timeout: duration("heartbeat_timeout_s", workers.heartbeat_timeout_s)?,
+            quorum_timeout: duration("quorum_timeout_s", workers.quorum_timeout_s)?,
+            regroup_grace: duration("regroup_grace_s", workers.regroup_grace_s)?,
+            stall_timeout: duration("stall_timeout_s", workers.stall_timeout_s)?,
+            exclusion: duration("exclusion_s", workers.exclusion_s)?,
         };
         let heartbeat_interval_s = workers.heartbeat_interval_s.0;
         Ok(Self {

@@ -172,10 +172,10 @@ impl CoordinatorService {
     async fn see_workers_off(&self, health: &JobHealth, recorders: &Mutex<Recorders>) {
         self.record_evaluation(recorders).await;
         health.job_ending().await;
-        tokio::time::sleep(Duration::from_secs_f64(
-            (self.heartbeat_interval_s * 4.0).max(1.0),
-        ))
-        .await;
+        let heartbeats = Duration::try_from_secs_f64(self.heartbeat_interval_s * 4.0)
+            .unwrap_or(Duration::ZERO)
+            .clamp(Duration::from_secs(1), Duration::from_secs(60));
+        tokio::time::sleep(heartbeats).await;
     }
 
     /// Stops the job however it ended: releases the long-polling RPCs, writes the last steps

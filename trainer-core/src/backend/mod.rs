@@ -3,12 +3,14 @@
 //! an error that names the feature, never a panic inside burn.
 
 mod host;
+mod kernels;
 mod memory;
 
 use burn::tensor::{Device, DeviceKind};
 pub use host::{
     Adapter, AdapterKind, CudaUnavailable, HostDevices, cuda_device_count, wgpu_adapters,
 };
+pub use kernels::{KernelCounts, count_kernels};
 pub use memory::MemoryFigures;
 pub use settings::Backend;
 
