@@ -7,19 +7,23 @@
 # (the backend unit tests, and a worker asked for `--device cuda`). Then a worker of that build
 # trains a two-worker job with `workers.device: vulkan` (scripts/test-gpu-roads-job.sh), and the
 # default worker is built back.
-# About 20 minutes the first time (PyTorch 2.9.0 is fetched, burn is built a second way);
-# a minute or two after.
+# Measured on 2 cores (2026-11-26): about 25 minutes the first time after the default build
+# (PyTorch 2.9.0 is fetched, 2.5 minutes; burn is built a second way, 20 minutes), 4 after.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 source scripts/env.sh
 export XDG_RUNTIME_DIR="${XDG_RUNTIME_DIR:-/tmp}"
 roads_features=vulkan,libtorch,cuda
-scripts/build-feature.sh "$roads_features" test --release -p trainer-core --lib --test trainer \
-    -- backend trains_like_the_cpu_backend --nocapture
-scripts/build-feature.sh "$roads_features" build --release -p worker --bin xfactor-worker
+# One cargo command builds the tests and the worker (for worker's `cli` test), so both take
+# one resolution of features and one build of burn: a separate `build -p worker` resolved
+# other features and compiled burn's kernel crates a second time (15 minutes cold).
+scripts/build-feature.sh "$roads_features" test --release -p trainer-core -p worker --lib \
+    --test trainer --test cli -- backend trains_like_the_cpu_backend --nocapture
 roads="$CARGO_TARGET_DIR/roads"
 mkdir -p "$roads"
 cp "$CARGO_TARGET_DIR/release/xfactor-worker" "$roads/xfactor-worker"
+# The roads worker loads PyTorch 2.9.0's libtorch.
+eval "$(scripts/setup-libtorch.sh)"
 # --device cuda without a driver: refused before joining, naming the library, exit 1, no panic.
 set +e
 refusal=$("$roads/xfactor-worker" --device cuda --coordinator http://127.0.0.1:9 --token t --no-slurm 2>&1)
@@ -32,5 +36,4 @@ if [ "$code" != 1 ] || ! grep -q 'libcuda.so\|libnvrtc.so' <<<"$refusal" || grep
 fi
 echo "gpu-roads: --device cuda without a driver refused: $(grep -o -- '--device cuda: .*' <<<"$refusal" | head -1)"
 cargo build --release -p worker --bin xfactor-worker
-eval "$(scripts/setup-libtorch.sh)"
 scripts/test-gpu-roads-job.sh "$roads/xfactor-worker"

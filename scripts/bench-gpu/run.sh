@@ -7,7 +7,8 @@
 # paper model at batch 8 and at the largest batch up to MAX_BATCH that fits), a real two-worker
 # job on the GPU, the release's half precisions last, and a summary table. Every figure is a
 # `key=value` line; a path that cannot run says why and the rest go on.
-#   ./run.sh      # STEPS=5 steps per measurement, DEADLINE_S=450, LIMIT_S=120 per run
+#   ./run.sh      # STEPS=5 steps per measurement, DEADLINE_S=450, LIMIT_S=120 per run,
+#                 # MAX_BATCH=64, JOB_STEPS=300, ROADS="cuda wgpu vulkan libtorch" (on a GPU)
 set -uo pipefail
 here="$(cd "$(dirname "$0")" && pwd)"
 steps="${STEPS:-5}"
@@ -141,6 +142,8 @@ largest_batch() { # backend model
 paths=()
 candidates=(cpu wgpu vulkan libtorch cuda)
 [ "$gpu" = 1 ] && candidates=(cuda wgpu vulkan libtorch)
+# ROADS="cuda wgpu" measures only those.
+[ -n "${ROADS:-}" ] && read -r -a candidates <<<"$ROADS"
 for path in "${candidates[@]}"; do
     binary_for "$path" >/dev/null && paths+=("$path")
 done

@@ -21,6 +21,15 @@ pub enum Ending {
     Suspended,
 }
 
+/// The coordinator ended a generation this worker was still in (it re-forms the group after
+/// another member's failure, a loss or a store outage): nobody's fault of this worker's.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, thiserror::Error)]
+#[error("the coordinator ended generation {generation}")]
+pub struct GenerationEnded {
+    /// The generation.
+    pub generation: u64,
+}
+
 /// What every generation of this worker shares.
 #[derive(Clone, Copy)]
 pub struct WorkerContext<'a> {

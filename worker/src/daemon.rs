@@ -17,7 +17,7 @@ use crate::context::{Ending, WorkerContext};
 use crate::options::{WorkerOptions, WorkerTls};
 use crate::progress::Progress;
 use crate::session::{AwaitError, Client, await_assignment, connect, heartbeats, leave, register};
-use crate::streaks::{AfterFailure, FailureStreaks, jitter};
+use crate::streaks::{AfterFailure, Blame, FailureStreaks, jitter};
 use crate::{device, evaluate, failure, health, metrics, shutdown, training};
 
 /// Runs the worker until the job finishes. Blocking; owns its async runtime.
@@ -192,7 +192,12 @@ impl Daemon<'_> {
         let report = failure::report(error);
         tracing::warn!(error = %report.reason, cause = ?report.cause, "generation abandoned");
         let draw = jitter(progress.worker_id(), streaks.in_a_row() + 1);
-        match streaks.failed(&report.cause, draw) {
+        let blame = if failure::ended_by_coordinator(error) {
+            Blame::Coordinator
+        } else {
+            Blame::of(&report.cause)
+        };
+        match streaks.failed(blame, draw) {
             AfterFailure::GiveUp { own_in_a_row } => {
                 bail!(
                     "{own_in_a_row} generations in a row failed by this worker's own fault; last error: {error:#}"

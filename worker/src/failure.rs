@@ -8,6 +8,7 @@ use settings::work::{FailureCause, GenerationFailure};
 
 use crate::checkpoints::{CorruptCheckpoint, TransferError};
 use crate::collective::CollectiveError;
+use crate::context::GenerationEnded;
 
 /// The report of a failed generation: the whole error chain as its reason, and its cause.
 pub fn report(error: &anyhow::Error) -> GenerationFailure {
@@ -15,6 +16,18 @@ pub fn report(error: &anyhow::Error) -> GenerationFailure {
         reason: format!("{error:#}"),
         cause: cause(error),
     }
+}
+
+/// Whether the coordinator ended the generation under this worker (a cancelled all-reduce, a
+/// step it no longer acknowledged): then nothing in the chain is this worker's fault.
+pub fn ended_by_coordinator(error: &anyhow::Error) -> bool {
+    error.chain().any(|link| {
+        link.downcast_ref::<GenerationEnded>().is_some()
+            || matches!(
+                link.downcast_ref::<CollectiveError>(),
+                Some(CollectiveError::Cancelled)
+            )
+    })
 }
 
 /// The first cause in `error`'s chain that names a culprit other than this worker;
@@ -102,6 +115,18 @@ mod tests {
     fn a_cancelled_all_reduce_is_this_workers_own() {
         let cancelled = anyhow::Error::new(CollectiveError::Cancelled);
         assert_eq!(cause(&cancelled), FailureCause::Worker);
+    }
+
+    #[test]
+    fn a_generation_the_coordinator_ended_is_told_apart_from_a_failure() {
+        let cancelled = anyhow::Error::new(CollectiveError::Cancelled).context("all-reduce");
+        assert!(ended_by_coordinator(&cancelled));
+        let ended = anyhow::Error::new(GenerationEnded { generation: 4 }).context("step 9");
+        assert!(ended_by_coordinator(&ended));
+        let own = anyhow::anyhow!("the device is gone");
+        assert!(!ended_by_coordinator(&own));
+        let peer = anyhow::Error::new(CollectiveError::PeerGone { rank: 1 });
+        assert!(!ended_by_coordinator(&peer));
     }
 
     #[test]

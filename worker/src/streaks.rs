@@ -4,8 +4,9 @@
 //! [`MAX_OWN_FAILURES`] of them in a row. A failure that names someone else (a peer, the object
 //! store, a corrupt commit) never ends it: however long the store is down, the worker waits and
 //! asks for work again, with a back-off that doubles up to [`MAX_BACKOFF`] and a jitter, so a
-//! healthy cluster is still there when the store comes back. A generation that finishes resets
-//! every streak.
+//! healthy cluster is still there when the store comes back. A generation the coordinator
+//! ended under the worker (to re-form the group) is nobody's failure: it asks again at once.
+//! A generation that finishes resets every streak.
 
 use std::time::Duration;
 
@@ -32,6 +33,8 @@ pub enum Blame {
     Store,
     /// A committed checkpoint that does not verify.
     CorruptCheckpoint,
+    /// The coordinator ended the generation (it re-forms the group): nothing to wait for.
+    Coordinator,
 }
 
 impl Blame {
@@ -52,6 +55,7 @@ impl Blame {
             Self::Peer => "peer",
             Self::Store => "store",
             Self::CorruptCheckpoint => "corrupt_checkpoint",
+            Self::Coordinator => "coordinator",
         }
     }
 }
@@ -61,8 +65,8 @@ impl Blame {
 pub enum AfterFailure {
     /// Ask for work again after `pause`.
     Retry {
-        /// How long to wait first (zero after an own failure: the coordinator's exclusion
-        /// already keeps a blamed worker out for a while).
+        /// How long to wait first (zero after an own failure, whose exclusion the coordinator
+        /// already times, and after a generation the coordinator ended).
         pause: Duration,
         /// Whose fault the failure was.
         blame: Blame,
@@ -94,10 +98,16 @@ impl FailureStreaks {
         *self = Self::default();
     }
 
-    /// Records a failure of `cause`; `jitter` in `[0, 1)` spreads the pauses of workers that
-    /// failed together (a fraction of up to a quarter of the pause is added).
-    pub fn failed(&mut self, cause: &FailureCause, jitter: f64) -> AfterFailure {
-        let blame = Blame::of(cause);
+    /// Records a failure that `blame` is to blame for; `jitter` in `[0, 1)` spreads the pauses
+    /// of workers that failed together (a fraction of up to a quarter of the pause is added).
+    pub fn failed(&mut self, blame: Blame, jitter: f64) -> AfterFailure {
+        if blame == Blame::Coordinator {
+            return AfterFailure::Retry {
+                pause: Duration::ZERO,
+                blame,
+                in_a_row: self.in_a_row() + 1,
+            };
+        }
         if blame == Blame::Own {
             self.own += 1;
             if self.own >= MAX_OWN_FAILURES {
@@ -150,7 +160,7 @@ mod tests {
     fn own_failures_end_the_worker_after_the_bound() {
         let mut streaks = FailureStreaks::default();
         for in_a_row in 1..MAX_OWN_FAILURES {
-            let after = streaks.failed(&FailureCause::Worker, 0.5);
+            let after = streaks.failed(Blame::Own, 0.5);
             assert_eq!(
                 after,
                 AfterFailure::Retry {
@@ -161,7 +171,7 @@ mod tests {
             );
         }
         assert_eq!(
-            streaks.failed(&FailureCause::Worker, 0.5),
+            streaks.failed(Blame::Own, 0.5),
             AfterFailure::GiveUp {
                 own_in_a_row: MAX_OWN_FAILURES
             }
@@ -172,7 +182,7 @@ mod tests {
     fn a_store_outage_of_any_length_never_ends_the_worker() {
         let mut streaks = FailureStreaks::default();
         for attempt in 1..=10_000 {
-            match streaks.failed(&FailureCause::Store, 0.0) {
+            match streaks.failed(Blame::Store, 0.0) {
                 AfterFailure::Retry { pause, blame, .. } => {
                     assert_eq!(blame, Blame::Store);
                     assert!(pause <= MAX_BACKOFF, "{attempt}: {pause:?}");
@@ -186,7 +196,7 @@ mod tests {
     fn peers_and_corrupt_commits_are_not_counted_against_the_worker() {
         let mut streaks = FailureStreaks::default();
         for _ in 0..MAX_OWN_FAILURES - 1 {
-            streaks.failed(&FailureCause::Worker, 0.0);
+            streaks.failed(Blame::Own, 0.0);
         }
         for cause in [
             FailureCause::Peer { rank: 1 },
@@ -196,13 +206,32 @@ mod tests {
             FailureCause::Store,
         ] {
             assert!(matches!(
-                streaks.failed(&cause, 0.0),
+                streaks.failed(Blame::of(&cause), 0.0),
                 AfterFailure::Retry { .. }
             ));
         }
         assert!(matches!(
-            streaks.failed(&FailureCause::Worker, 0.0),
+            streaks.failed(Blame::Own, 0.0),
             AfterFailure::GiveUp { own_in_a_row: 8 }
+        ));
+    }
+
+    #[test]
+    fn generations_the_coordinator_ended_never_count_against_the_worker() {
+        let mut streaks = FailureStreaks::default();
+        for _ in 0..100 {
+            assert!(matches!(
+                streaks.failed(Blame::Coordinator, 0.0),
+                AfterFailure::Retry {
+                    pause: Duration::ZERO,
+                    blame: Blame::Coordinator,
+                    ..
+                }
+            ));
+        }
+        assert!(matches!(
+            streaks.failed(Blame::Own, 0.0),
+            AfterFailure::Retry { in_a_row: 1, .. }
         ));
     }
 
@@ -210,13 +239,13 @@ mod tests {
     fn a_finished_generation_resets_every_streak() {
         let mut streaks = FailureStreaks::default();
         for _ in 0..MAX_OWN_FAILURES - 1 {
-            streaks.failed(&FailureCause::Worker, 0.0);
+            streaks.failed(Blame::Own, 0.0);
         }
-        streaks.failed(&FailureCause::Store, 0.0);
+        streaks.failed(Blame::Store, 0.0);
         streaks.succeeded();
         assert_eq!(streaks, FailureStreaks::default());
         assert!(matches!(
-            streaks.failed(&FailureCause::Worker, 0.0),
+            streaks.failed(Blame::Own, 0.0),
             AfterFailure::Retry { in_a_row: 1, .. }
         ));
     }

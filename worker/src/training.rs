@@ -15,7 +15,7 @@ use trainer_core::flat::parameter_checksum;
 use crate::accounting::{Reporter, StepAccount, checksum_due};
 use crate::checkpoints;
 use crate::commits::{CommitDecision, CommitRequest, CommitSchedule, InFlightCommit};
-use crate::context::{Ending, WorkerContext};
+use crate::context::{Ending, GenerationEnded, WorkerContext};
 use crate::generation::{self, Prepared};
 use crate::metrics::{self, Timed};
 use crate::session::Client;
@@ -137,7 +137,10 @@ impl StageRun<'_> {
             return Ok(Some(Ending::Stopping));
         }
         if *self.context.progress.cancel.borrow() {
-            bail!("the coordinator abandoned generation {}", self.generation);
+            return Err(GenerationEnded {
+                generation: self.generation,
+            }
+            .into());
         }
         Ok(None)
     }
@@ -169,7 +172,10 @@ impl StageRun<'_> {
             .map_err(|status| anyhow::anyhow!("step report refused: {}", status.message()))?
             .into_inner();
         if !ack.generation_current {
-            bail!("generation {} is no longer current", self.generation);
+            return Err(GenerationEnded {
+                generation: self.generation,
+            }
+            .into());
         }
         Ok(ack)
     }

@@ -481,4 +481,6 @@ impl ClusterConfig {
 }
 
 #[cfg(test)]
+mod fuzz_tests;
+#[cfg(test)]
 mod tests;

@@ -2,7 +2,7 @@
 
 use super::*;
 
-const GOOD: &str = "job: demo
+pub(super) const GOOD: &str = "job: demo
 auth:
   token: abc
 model:

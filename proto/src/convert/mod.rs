@@ -555,6 +555,8 @@ impl TryFrom<&v1::EvaluationSettings> for EvaluationSpec {
 }
 
 #[cfg(test)]
+mod fuzz_tests;
+#[cfg(test)]
 mod tests;
 #[cfg(test)]
 mod work_tests;

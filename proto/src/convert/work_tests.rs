@@ -15,7 +15,7 @@ use settings::{DeviceChoice, DeviceSet, Phase, XFactorConfig};
 use super::ConvertError;
 use crate::v1;
 
-fn train_work(start: TrainStart, ring: Option<RingSecrets>) -> TrainWork {
+pub(super) fn train_work(start: TrainStart, ring: Option<RingSecrets>) -> TrainWork {
     TrainWork {
         stage: Phase::Stage2,
         rank: 1,
