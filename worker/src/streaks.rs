@@ -16,8 +16,10 @@ use settings::work::FailureCause;
 /// this often will not heal by itself.
 pub const MAX_OWN_FAILURES: u32 = 8;
 
-/// The longest pause between two tries after failures that were not this worker's.
-pub const MAX_BACKOFF: Duration = Duration::from_secs(30);
+/// The longest pause between two tries after failures that were not this worker's: the
+/// coordinator's own store back-off stops at 8 s too, so a returned store is found within
+/// seconds (with a 30 s cap, stage 1 committed 11.1 s after a minute's outage, 0.9 s with 8 s).
+pub const MAX_BACKOFF: Duration = Duration::from_secs(8);
 
 /// The first pause after a failure that was not this worker's.
 const FIRST_BACKOFF: Duration = Duration::from_secs(1);
@@ -254,8 +256,8 @@ mod tests {
     fn the_backoff_doubles_to_its_cap_with_at_most_a_quarter_of_jitter() {
         assert_eq!(backoff(1, 0.0), Duration::from_secs(1));
         assert_eq!(backoff(2, 0.0), Duration::from_secs(2));
-        assert_eq!(backoff(5, 0.0), Duration::from_secs(16));
-        assert_eq!(backoff(6, 0.0), MAX_BACKOFF);
+        assert_eq!(backoff(4, 0.0), Duration::from_secs(8));
+        assert_eq!(backoff(5, 0.0), MAX_BACKOFF);
         assert_eq!(backoff(u32::MAX, 0.0), MAX_BACKOFF);
         assert_eq!(backoff(1, 0.5), Duration::from_millis(1125));
         for bad in [f64::NAN, f64::INFINITY, -3.0] {

@@ -9,8 +9,8 @@ use proto::v1::Chunk;
 use proto::v1::collective_client::CollectiveClient;
 use tokio::sync::watch;
 use worker::collective::{
-    CollectiveError, CollectiveService, Link, Mailbox, PeerTls, RING_SECRET_KEY, Ring, RingKeys,
-    spawn_server,
+    CollectiveError, CollectiveService, Link, Mailbox, PeerTls, RING_SECRET_KEY, ReduceStats, Ring,
+    RingKeys, spawn_server,
 };
 
 const TOKEN: &str = "ring-test";
@@ -129,51 +129,9 @@ async fn three_ranks_sum_in_small_pipelined_chunks() {
     }
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn a_chunk_of_the_wrong_size_is_refused_by_name() {
-    let (address_0, mailbox_0) = serve().await;
-    let (address_1, _) = serve().await;
-    let peers = vec![address_0.clone(), address_1];
-    let (_cancel, cancelled) = watch::channel(false);
-    let honest = tokio::spawn(async move {
-        let mut ring = join(&mailbox_0, 0, &peers, 3, cancelled).await;
-        let mut values = vec![1.0f32; 100];
-        let result = ring.all_reduce(&mut values).await;
-        (result, values)
-    });
-    let channel = tonic::transport::Endpoint::from_shared(format!("http://{address_0}"))
-        .unwrap()
-        .connect()
-        .await
-        .unwrap();
-    let mut rogue =
-        CollectiveClient::with_interceptor(channel, proto::AttachToken::new(TOKEN).unwrap());
-    let chunk = Chunk {
-        generation: 3,
-        operation: 0,
-        ring_step: 0,
-        segment: 1,
-        offset: 50,
-        values: Bytes::from(vec![0u8; 4 * 49]),
-        sender: 1,
-    };
-    // A misbehaving member: it holds rank 1's secret but sends a short chunk.
-    let _ = rogue.push(pushed(vec![chunk], &secret(1))).await;
-    let (result, _) = honest.await.unwrap();
-    match result {
-        Err(CollectiveError::BadChunk { rank, detail }) => {
-            assert_eq!(rank, 1);
-            assert!(detail.contains("196 bytes"), "{detail}");
-            assert!(detail.contains("expected 200"), "{detail}");
-        }
-        other => panic!("expected a bad-chunk error, got {other:?}"),
-    }
-}
-
-/// A member holding rank 1's ring secret writes chunks claiming to come from rank 0, the
-/// receiver itself: the blame goes to the rank whose authenticated stream delivered them.
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn a_forged_sender_field_blames_the_stream_that_delivered_it() {
+/// Rank 0 of a two-rank ring all-reduces 100 values while a member holding rank 1's ring
+/// secret pushes `chunk` into its inbox; rank 0's result.
+async fn all_reduce_beside(chunk: Chunk) -> Result<ReduceStats, CollectiveError> {
     let (address_0, mailbox_0) = serve().await;
     let (address_1, _) = serve().await;
     let peers = vec![address_0.clone(), address_1];
@@ -188,19 +146,43 @@ async fn a_forged_sender_field_blames_the_stream_that_delivered_it() {
         .connect()
         .await
         .unwrap();
-    let mut forger =
+    let mut member =
         CollectiveClient::with_interceptor(channel, proto::AttachToken::new(TOKEN).unwrap());
-    let forged = Chunk {
+    let _ = member.push(pushed(vec![chunk], &secret(1))).await;
+    honest.await.unwrap()
+}
+
+/// The first chunk rank 1 owes rank 0 (segment 1 of 100 values), with `values` bytes.
+fn first_chunk(values: usize, sender: u32) -> Chunk {
+    Chunk {
         generation: 3,
         operation: 0,
         ring_step: 0,
         segment: 1,
         offset: 50,
-        values: Bytes::from(vec![0u8; 4 * 50]),
-        sender: 0,
-    };
-    let _ = forger.push(pushed(vec![forged], &secret(1))).await;
-    match honest.await.unwrap() {
+        values: Bytes::from(vec![0u8; values]),
+        sender,
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_chunk_of_the_wrong_size_is_refused_by_name() {
+    // A misbehaving member: it holds rank 1's secret but sends a short chunk.
+    match all_reduce_beside(first_chunk(4 * 49, 1)).await {
+        Err(CollectiveError::BadChunk { rank, detail }) => {
+            assert_eq!(rank, 1);
+            assert!(detail.contains("196 bytes"), "{detail}");
+            assert!(detail.contains("expected 200"), "{detail}");
+        }
+        other => panic!("expected a bad-chunk error, got {other:?}"),
+    }
+}
+
+/// A member holding rank 1's ring secret writes a chunk claiming to come from rank 0, the
+/// receiver itself: the blame goes to the rank whose authenticated stream delivered it.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_forged_sender_field_blames_the_stream_that_delivered_it() {
+    match all_reduce_beside(first_chunk(4 * 50, 0)).await {
         Err(CollectiveError::BadChunk { rank, detail }) => {
             assert_eq!(rank, 1, "the forger, not the rank it named");
             assert!(detail.contains("claiming to be from rank 0"), "{detail}");

@@ -8,12 +8,10 @@ use std::panic::{AssertUnwindSafe, catch_unwind};
 
 use prost::Message;
 use settings::evaluation::EvaluationSpec;
-use settings::work::{
-    Assignment, EvaluateWork, FailureCause, GenerationFailure, RingSecrets, TrainStart, Work,
-};
-use settings::{Backend, DeviceChoice, DeviceInUse, XFactorConfig};
+use settings::work::{Assignment, FailureCause, GenerationFailure, Work};
+use settings::{Backend, DeviceInUse, XFactorConfig};
 
-use super::work_tests::train_work;
+use super::work_tests::every_kind_of_work;
 use super::*;
 
 /// Mutations tried per message.
@@ -112,25 +110,7 @@ fn never_panics<M: Message + Default>(message: &M, seed: u64, convert: impl Fn(&
 }
 
 fn assignments() -> Vec<Assignment> {
-    let secrets = RingSecrets {
-        own: "own".into(),
-        left: "left".into(),
-    };
-    let works = [
-        Work::Train(Box::new(train_work(
-            TrainStart::Resume("s3://bucket/job/stage2/step-00000010-g3".into()),
-            Some(secrets),
-        ))),
-        Work::Train(Box::new(train_work(TrainStart::Fresh, None))),
-        Work::Evaluate(Box::new(EvaluateWork {
-            weights: "s3://bucket/job/stage2/final".into(),
-            report_prefix: "s3://bucket/job/evaluation".into(),
-            device: DeviceChoice::Cpu,
-            model: XFactorConfig::tiny(16),
-            spec: EvaluationSpec::default(),
-        })),
-    ];
-    works
+    every_kind_of_work()
         .into_iter()
         .map(|work| Assignment {
             generation: 12,

@@ -15,7 +15,7 @@ use settings::{DeviceChoice, DeviceSet, Phase, XFactorConfig};
 use super::ConvertError;
 use crate::v1;
 
-pub(super) fn train_work(start: TrainStart, ring: Option<RingSecrets>) -> TrainWork {
+fn train_work(start: TrainStart, ring: Option<RingSecrets>) -> TrainWork {
     TrainWork {
         stage: Phase::Stage2,
         rank: 1,
@@ -60,13 +60,13 @@ fn wire(work: &TrainWork) -> v1::TrainAssignment {
     v1::TrainAssignment::from(work)
 }
 
-#[test]
-fn every_kind_of_assignment_survives_the_wire() {
+/// One work of every kind and start the wire carries.
+pub(super) fn every_kind_of_work() -> Vec<Work> {
     let secrets = RingSecrets {
         own: "own".into(),
         left: "left".into(),
     };
-    let works = [
+    vec![
         Work::Train(Box::new(train_work(
             TrainStart::Resume("s3://bucket/job/stage2/step-00000010-g3".into()),
             Some(secrets.clone()),
@@ -92,8 +92,12 @@ fn every_kind_of_assignment_survives_the_wire() {
             spec: EvaluationSpec::default(),
         })),
         Work::Finish,
-    ];
-    for work in works {
+    ]
+}
+
+#[test]
+fn every_kind_of_assignment_survives_the_wire() {
+    for work in every_kind_of_work() {
         let assignment = Assignment {
             generation: 12,
             work,
