@@ -52,7 +52,8 @@ done
 loader=no
 ldconfig -p 2>/dev/null | grep -q 'libvulkan.so.1' && loader=yes
 nvrtc=no
-{ ldconfig -p 2>/dev/null | grep -q libnvrtc.so || ls "${LD_LIBRARY_PATH%%:*}"/libnvrtc.so* >/dev/null 2>&1; } && nvrtc=yes
+first_lib="${LD_LIBRARY_PATH:-}"
+{ ldconfig -p 2>/dev/null | grep -q libnvrtc.so || ls "${first_lib%%:*}"/libnvrtc.so* >/dev/null 2>&1; } && nvrtc=yes
 echo "vulkan icd=${VK_DRIVER_FILES:-default} libvulkan=$loader nvrtc=$nvrtc"
 torch=$(python3 -c 'import torch; print(torch.__version__)' 2>/dev/null || echo none)
 echo "python $(python3 --version 2>&1 | tr ' ' '=') torch=$torch"
@@ -94,7 +95,8 @@ done
 binary_for() { # path
     local binary
     case $1 in
-    cpu | wgpu) binary="$here/bin/model_step-default" ;;
+    cpu | wgpu) binary="$here/bin/model_step-default"
+        [ -x "$binary" ] || binary="$here/bin/model_step-gpu" ;;
     vulkan | cuda) binary="$here/bin/model_step-gpu"
         [ -x "$binary" ] || binary="$here/bin/model_step-roads" ;;
     libtorch) binary="$here/bin/model_step-roads" ;;
