@@ -35,11 +35,13 @@ impl MemoryFigures {
     pub fn read(device: &Device) -> Self {
         let pools = device.memory_pool_usage();
         let (driver_device_used, driver_process_used) = nvidia_driver_memory();
+        let status = std::fs::read_to_string("/proc/self/status").unwrap_or_default();
+        let status_bytes = |key| parse_status_kib(&status, key).map(|kib| kib * 1024);
         Self {
             pool_reserved: pools.map(|usage| usage.bytes_reserved),
             pool_in_use: pools.map(|usage| usage.bytes_in_use),
-            host_resident: proc_status_bytes("VmRSS:"),
-            host_peak_resident: proc_status_bytes("VmHWM:"),
+            host_resident: status_bytes("VmRSS:"),
+            host_peak_resident: status_bytes("VmHWM:"),
             driver_device_used,
             driver_process_used,
         }
@@ -69,12 +71,7 @@ impl MemoryFigures {
     }
 }
 
-/// A byte count from this process's `/proc/self/status` line `key` (given in KiB there).
-fn proc_status_bytes(key: &str) -> Option<u64> {
-    let status = std::fs::read_to_string("/proc/self/status").ok()?;
-    parse_status_kib(&status, key).map(|kib| kib * 1024)
-}
-
+/// The KiB count of `/proc/self/status`'s line `key` (`VmRSS:`, `VmHWM:`).
 fn parse_status_kib(status: &str, key: &str) -> Option<u64> {
     let line = status.lines().find(|line| line.starts_with(key))?;
     line.split_whitespace().nth(1)?.parse().ok()
