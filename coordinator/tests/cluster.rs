@@ -56,22 +56,28 @@ fn two_workers_run_both_stages_in_lockstep_then_one_evaluates() {
     assert!(evaluation.starts_with(dir.path().join("checkpoints/evaluation")));
     let numbers: Value =
         serde_json::from_slice(&std::fs::read(evaluation.join("report.json")).unwrap()).unwrap();
-    assert_eq!(
-        numbers["checkpoint"]
-            .as_str()
-            .map(|c| c.ends_with("model.safetensors")),
-        Some(true)
-    );
-    for model in ["trained", "untrained"] {
-        let psnr = numbers[model]["reconstruction"]["psnr"].as_f64().unwrap();
-        assert!(psnr.is_finite() && psnr > 0.0, "{model} psnr {psnr}");
-        assert!(numbers[model]["tps"]["model"]["pairs"].as_u64().unwrap() > 0);
-        assert!(
-            numbers[model]["probe"]["metrics"]["pairs"]
-                .as_u64()
-                .unwrap()
-                > 0
+    let stages = numbers["stages"].as_array().expect("scored stages");
+    let labels: Vec<&str> = stages
+        .iter()
+        .map(|s| s["checkpoint"]["label"].as_str().unwrap_or("?"))
+        .collect();
+    assert_eq!(labels, ["stage1", "stage2"], "both stages' final weights");
+    for stage in stages {
+        assert_eq!(
+            stage["checkpoint"]["weights"]
+                .as_str()
+                .map(|c| c.ends_with("model.safetensors")),
+            Some(true)
         );
+        for model in ["trained", "untrained"] {
+            let numbers = &stage[model];
+            let psnr = numbers["reconstruction"]["psnr"].as_f64().unwrap();
+            assert!(psnr.is_finite() && psnr > 0.0, "{model} psnr {psnr}");
+            assert!(numbers["tps"]["model"]["pairs"].as_u64().unwrap() > 0);
+            assert!(numbers["probe"]["metrics"]["pairs"].as_u64().unwrap() > 0);
+        }
+        let copy = stage["baselines"]["copy"]["psnr"].as_f64().unwrap();
+        assert!(copy.is_finite() && copy > 0.0, "copy baseline psnr {copy}");
     }
     let markdown = std::fs::read_to_string(evaluation.join("report.md")).unwrap();
     assert!(markdown.contains('|'), "{markdown}");

@@ -1,6 +1,6 @@
 //! Planning a job over a stored dataset: a split file named in the cluster YAML replaces the
 //! layout's train/test rule, and a split file that cannot be read stops the plan naming the
-//! YAML key and the file.
+//! YAML key and the file; an evaluation that would read training scenes is refused naming them.
 
 use coordinator::config::ClusterConfig;
 use coordinator::plan::{Plan, PlanError};
@@ -108,4 +108,68 @@ fn a_split_file_chooses_the_training_sequences() {
         chain.contains("data.datasets[0].split_file") && chain.contains("nowhere.json"),
         "{chain}"
     );
+}
+
+/// An `evaluate:` section on generated scenes of `seed`, with `sequences` (YAML list items).
+fn evaluate_yaml(seed: u64, sequences: &str) -> String {
+    format!(
+        "evaluate:\n  seed: {seed}\n  scenes: 2\n  trajectories: 2\n  probe: {{test_scenes: 1}}\n  sequences: [{sequences}]\n"
+    )
+}
+
+#[test]
+fn an_evaluation_that_reads_training_scenes_is_refused_naming_them() {
+    let dir = tempfile::tempdir().unwrap();
+    let rt = runtime();
+    let scene = SceneConfig {
+        image_size: 32,
+        ..SceneConfig::default()
+    };
+    let uri = dir.path().join("re10k").display().to_string();
+    let root = DataRoot::create(&uri).unwrap();
+    let dataset = SyntheticDataset::generate(2, 2, 2, 10, &scene);
+    // The same sequences in the train and the test folder: a test split that trains.
+    for split in [data::Split::Train, data::Split::Test] {
+        rt.block_on(dataset.write_re10k(&root, split, scene.fov_degrees))
+            .unwrap();
+    }
+    let held_out = dir.path().join("re10k-test").display().to_string();
+    let test_root = DataRoot::create(&held_out).unwrap();
+    let unseen = SyntheticDataset::generate_split(2, data::Split::Test, 2, 2, 10, &scene);
+    rt.block_on(unseen.write_re10k(&test_root, data::Split::Test, scene.fov_degrees))
+        .unwrap();
+    let plan = |evaluate: String| {
+        let yaml = cluster_yaml(&uri, "") + &evaluate;
+        let config = ClusterConfig::from_yaml(&yaml, "cluster.yaml").unwrap();
+        rt.block_on(Plan::build(config)).map_err(Box::new)
+    };
+    let protocol = |root: &str| format!("{{kind: re10k, uri: {root}, length: 10, count: 4}}");
+
+    let shared = plan(evaluate_yaml(2, &protocol(&uri))).unwrap_err();
+    let message = format!("{:#}", anyhow::Error::from(*shared));
+    assert!(
+        message.contains("evaluate.sequences[0]")
+            && message.contains("4 evaluated scene(s)")
+            && message.contains("g2-s0_t0"),
+        "{message}"
+    );
+    plan(evaluate_yaml(2, &protocol(&held_out))).expect("held-out sequences are evaluated");
+
+    // Training on the held-out draws themselves: the generated evaluation scenes are refused.
+    let leaked = dir.path().join("leaked").display().to_string();
+    let leaked_root = DataRoot::create(&leaked).unwrap();
+    rt.block_on(unseen.write_re10k(&leaked_root, data::Split::Train, scene.fov_degrees))
+        .unwrap();
+    let config = |seed| {
+        let yaml = cluster_yaml(&leaked, "") + &evaluate_yaml(seed, "");
+        ClusterConfig::from_yaml(&yaml, "cluster.yaml").unwrap()
+    };
+    let error = rt.block_on(Plan::build(config(2))).unwrap_err().to_string();
+    let first_held_out = data::synthetic::scene_name(2, data::Split::Test, 0);
+    assert!(
+        error.contains("evaluate (its generated scenes)") && error.contains(&first_held_out),
+        "{error}"
+    );
+    rt.block_on(Plan::build(config(3)))
+        .expect("another seed's held-out scenes are unseen");
 }

@@ -122,8 +122,13 @@ fn tensorboard_reads_every_step_series_the_configuration_and_the_evaluation() {
     }
 
     let evaluation = &runs["evaluate"];
-    for model in ["trained", "untrained"] {
-        let psnr = &evaluation["scalars"][format!("{model}/reconstruction/psnr")];
+    for model in [
+        "stage1/trained/reconstruction",
+        "stage2/trained/reconstruction",
+        "stage2/untrained/reconstruction",
+        "stage2/baselines/copy",
+    ] {
+        let psnr = &evaluation["scalars"][format!("{model}/psnr")];
         let value = psnr[0][1]
             .as_f64()
             .unwrap_or_else(|| panic!("{model} psnr: {evaluation:#}"));

@@ -40,4 +40,24 @@ impl Manifest {
     pub fn frame_counts(&self) -> Vec<usize> {
         self.sequences.iter().map(|s| s.frames.len()).collect()
     }
+
+    /// The test sequences an evaluation of `count` sequences of `length` frames reads (the
+    /// first of the test split, in manifest order, with at least `length` frames), and how many
+    /// shorter ones it passed over on the way. The evaluation and the coordinator's held-out
+    /// check both choose with this, so the check covers exactly what is evaluated.
+    pub fn evaluated_test_sequences(&self, length: usize, count: usize) -> (Vec<&Sequence>, usize) {
+        let mut chosen = Vec::new();
+        let mut skipped_short = 0;
+        for sequence in self.sequences.iter().filter(|s| s.split == Split::Test) {
+            if chosen.len() == count {
+                break;
+            }
+            if sequence.frames.len() < length {
+                skipped_short += 1;
+            } else {
+                chosen.push(sequence);
+            }
+        }
+        (chosen, skipped_short)
+    }
 }

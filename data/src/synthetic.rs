@@ -10,6 +10,10 @@ use crate::store::{DataRoot, StoreError};
 
 /// Tag of the sampling streams.
 const SAMPLING_STREAM: u64 = 0x5359_4e54;
+/// Scene and trajectory indices of the held-out (test) split start here, so no held-out scene
+/// or camera path can be one a training job generated from the same seed (a job would need
+/// 2^40 scenes to reach them).
+pub const HELD_OUT_FIRST_INDEX: u64 = 1 << 40;
 
 /// One trajectory rendered in one scene.
 #[derive(Debug, Clone)]
@@ -33,12 +37,42 @@ pub struct SyntheticDataset {
     pub max_gap: usize,
     /// Frames per sample: 2 gives stage-1 pairs, more gives stage-2 multi-view samples.
     pub views: usize,
+    /// The split its scenes and paths were drawn for: training and held-out scenes never meet.
+    pub split: Split,
     /// Sequences, scene-major.
     pub sequences: Vec<SyntheticSequence>,
 }
 
+/// The first scene (and trajectory) index of `split`'s draws.
+fn first_index(split: Split) -> u64 {
+    match split {
+        Split::Train => 0,
+        Split::Test => HELD_OUT_FIRST_INDEX,
+    }
+}
+
+/// The name of generated scene `scene` of `split` under `seed` (`g{seed}-s{draw index}`): the
+/// start of every sequence name [`SyntheticDataset::write_re10k`] writes, so a job can tell
+/// which generated scenes a stored dataset holds.
+pub fn scene_name(seed: u64, split: Split, scene: u64) -> String {
+    format!("g{seed}-s{}", first_index(split) + scene)
+}
+
+/// The generated scene a stored sequence id names (`g7-s3` of `g7-s3_t2`), or `None` when the
+/// id is no generated sequence's.
+pub fn scene_of_sequence_id(id: &str) -> Option<&str> {
+    let (scene, trajectory) = id.rsplit_once("_t")?;
+    let (seed, index) = scene.strip_prefix('g')?.split_once("-s")?;
+    let numbers = [seed, index, trajectory];
+    numbers
+        .iter()
+        .all(|n| !n.is_empty() && n.bytes().all(|b| b.is_ascii_digit()))
+        .then_some(scene)
+}
+
 impl SyntheticDataset {
-    /// Renders `trajectories` camera paths of `frames` frames in each of `scenes` scenes.
+    /// Renders `trajectories` camera paths of `frames` frames in each of `scenes` training
+    /// scenes.
     pub fn generate(
         seed: u64,
         scenes: u64,
@@ -46,12 +80,27 @@ impl SyntheticDataset {
         frames: usize,
         config: &SceneConfig,
     ) -> Self {
+        Self::generate_split(seed, Split::Train, scenes, trajectories, frames, config)
+    }
+
+    /// Renders `trajectories` camera paths of `frames` frames in each of `scenes` scenes drawn
+    /// for `split`: held-out (test) scenes and paths come from their own draw indices, so an
+    /// evaluation on them never sees a scene or path a training job generated.
+    pub fn generate_split(
+        seed: u64,
+        split: Split,
+        scenes: u64,
+        trajectories: u64,
+        frames: usize,
+        config: &SceneConfig,
+    ) -> Self {
+        let first = first_index(split);
         let paths: Vec<Trajectory> = (0..trajectories)
-            .map(|t| Trajectory::random(seed, t, frames))
+            .map(|t| Trajectory::random(seed, first + t, frames))
             .collect();
         let mut sequences = Vec::new();
         for scene_index in 0..scenes {
-            let scene = Scene::random(seed, scene_index, config);
+            let scene = Scene::random(seed, first + scene_index, config);
             for (trajectory, path) in paths.iter().enumerate() {
                 sequences.push(SyntheticSequence {
                     scene: scene_index,
@@ -65,8 +114,19 @@ impl SyntheticDataset {
             seed,
             max_gap: frames.saturating_sub(1).max(1),
             views: 2,
+            split,
             sequences,
         }
+    }
+
+    /// The stored name of `sequence`: its scene's [`scene_name`], then `_t` and its path's draw
+    /// index.
+    pub fn sequence_name(&self, sequence: &SyntheticSequence) -> String {
+        format!(
+            "{}_t{}",
+            scene_name(self.seed, self.split, sequence.scene),
+            first_index(self.split) + sequence.trajectory
+        )
     }
 
     /// The sequence of `trajectory` rendered in `scene`.
@@ -143,9 +203,9 @@ pub enum WriteError {
 }
 
 impl SyntheticDataset {
-    /// Writes every sequence in the RE10K layout under `root`:
-    /// `{split}/images/s{scene}_t{trajectory}/NNN.png` and the camera file
-    /// `{split}/cameras/s{scene}_t{trajectory}.txt` (RE10K's format: a header line, then per
+    /// Writes every sequence in the RE10K layout under `root`'s `split` folder:
+    /// `{split}/images/{name}/NNN.png` and the camera file `{split}/cameras/{name}.txt`, named
+    /// by [`SyntheticDataset::sequence_name`] (RE10K's format: a header line, then per
     /// frame `timestamp fx fy cx cy 0 0` with normalised intrinsics and the 3x4 world-to-camera
     /// matrix, row-major). Returns the number of frames written.
     pub async fn write_re10k(
@@ -161,7 +221,7 @@ impl SyntheticDataset {
         let focal = 0.5 / (fov_degrees.to_radians() / 2.0).tan();
         let mut written = 0;
         for sequence in &self.sequences {
-            let name = format!("s{}_t{}", sequence.scene, sequence.trajectory);
+            let name = self.sequence_name(sequence);
             let mut cameras = format!("generated://xfactor-dist/{name}\n");
             for (index, (frame, pose)) in sequence.frames.iter().zip(&sequence.poses).enumerate() {
                 let path = format!("{split}/images/{name}/{index:03}.png");
@@ -288,5 +348,40 @@ mod tests {
         let b = dataset.sequence(1, 2).unwrap();
         assert_eq!(a.poses, b.poses);
         assert_ne!(a.frames, b.frames);
+    }
+
+    #[test]
+    fn held_out_scenes_and_paths_are_none_of_the_training_ones() {
+        let config = SceneConfig {
+            image_size: 16,
+            ..SceneConfig::default()
+        };
+        let train = SyntheticDataset::generate(5, 3, 2, 4, &config);
+        let test = SyntheticDataset::generate_split(5, Split::Test, 3, 2, 4, &config);
+        for held_out in &test.sequences {
+            for seen in &train.sequences {
+                assert_ne!(held_out.frames[0], seen.frames[0]);
+                assert_ne!(held_out.poses, seen.poses);
+            }
+        }
+        let name = test.sequence_name(&test.sequences[3]);
+        assert_eq!(
+            name,
+            format!(
+                "g5-s{}_t{}",
+                HELD_OUT_FIRST_INDEX + 1,
+                HELD_OUT_FIRST_INDEX + 1
+            )
+        );
+        assert_eq!(
+            scene_of_sequence_id(&name),
+            Some(scene_name(5, Split::Test, 1).as_str())
+        );
+        assert_eq!(train.sequence_name(&train.sequences[0]), "g5-s0_t0");
+        for foreign in [
+            "s0_t0", "g5-s1", "gx-s1_t0", "g5-s_t1", "5-s1_t1", "g5-s1_tx",
+        ] {
+            assert_eq!(scene_of_sequence_id(foreign), None, "{foreign}");
+        }
     }
 }

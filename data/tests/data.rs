@@ -283,10 +283,16 @@ fn generated_scenes_write_an_re10k_tree_that_indexes_and_decodes() {
     let indexed = rt.block_on(index(&root, DatasetKind::Re10k)).unwrap();
     assert_eq!(indexed.manifest.sequences.len(), 6);
     let sequence = &indexed.manifest.sequences[0];
-    assert_eq!(sequence.id, "s0_t0");
-    assert_eq!(sequence.poses.as_deref(), Some("train/cameras/s0_t0.txt"));
-    let cameras =
-        String::from_utf8(rt.block_on(root.read("train/cameras/s0_t0.txt")).unwrap()).unwrap();
+    assert_eq!(sequence.id, "g3-s0_t0");
+    assert_eq!(
+        sequence.poses.as_deref(),
+        Some("train/cameras/g3-s0_t0.txt")
+    );
+    let cameras = String::from_utf8(
+        rt.block_on(root.read("train/cameras/g3-s0_t0.txt"))
+            .unwrap(),
+    )
+    .unwrap();
     assert_eq!(cameras.lines().count(), 13, "header + one line per frame");
     assert_eq!(cameras.lines().nth(1).unwrap().split(' ').count(), 19);
     let bytes = rt.block_on(root.read(&sequence.frames[5])).unwrap();

@@ -59,6 +59,9 @@ pub fn read_runs(paths: &[PathBuf], labels: &[String]) -> Result<Vec<ComparedRun
         let bytes = std::fs::read(&path).map_err(|e| io_error(&path, e))?;
         let report: EvaluationReport = serde_json::from_slice(&bytes)
             .map_err(|e| io_error(&path, format!("not an evaluation report: {e}")))?;
+        if report.stages.is_empty() {
+            return Err(io_error(&path, "the report scores no checkpoint"));
+        }
         if let Some(first) = runs.first()
             && first.report.spec != report.spec
         {
@@ -105,10 +108,13 @@ fn scores(metrics: &CameraMetrics, threshold: u32) -> [f64; 3] {
     })
 }
 
-/// A row's six values in [`MEASURES`] order.
+/// A row's six values in [`MEASURES`] order, of the run's last checkpoint (its final model).
 pub fn row(run: &ComparedRun, threshold: u32) -> [f64; 6] {
-    let [a, b, c] = scores(&run.report.trained.tps.model, threshold);
-    let [d, e, f] = scores(&run.report.trained.probe.metrics, threshold);
+    let Some(last) = run.report.last() else {
+        return [f64::NAN; 6];
+    };
+    let [a, b, c] = scores(&last.trained.tps.model, threshold);
+    let [d, e, f] = scores(&last.trained.probe.metrics, threshold);
     [a, b, c, d, e, f]
 }
 
@@ -136,7 +142,10 @@ pub fn markdown(runs: &[ComparedRun], threshold: u32) -> String {
             spec.scenes,
             spec.trajectories,
             spec.tps_pairs,
-            first.report.trained.tps.oracle,
+            first
+                .report
+                .last()
+                .map_or("?", |stage| stage.trained.tps.oracle.as_str()),
             spec.probe.test_scenes
         );
     }
@@ -218,62 +227,94 @@ mod tests {
     use settings::evaluation::EvaluationSpec;
 
     use super::*;
-    use crate::evaluate::ModelReport;
+    use crate::evaluate::{
+        Baselines, CheckpointUnderTest, EvaluationScenes, ModelReport, StageReport,
+    };
     use crate::metrics::{PairError, ReconstructionReport};
     use crate::probe::ProbeReport;
     use crate::tps::TpsReport;
 
+    /// Metrics of four pairs: two erring by `degrees`, two by 45 degrees.
+    fn metrics(degrees: f64) -> CameraMetrics {
+        let mut errors = vec![
+            PairError {
+                rotation: degrees,
+                translation: degrees,
+            };
+            2
+        ];
+        errors.extend(
+            [PairError {
+                rotation: 45.0,
+                translation: 45.0,
+            }; 2],
+        );
+        CameraMetrics::from_errors(&errors)
+    }
+
     /// A report whose transfers err by `transfer` degrees and whose probe by `probe` (half
     /// the pairs each; the other half err by 45 degrees).
     fn report(transfer: f64, probe: f64, pose_dim: usize) -> EvaluationReport {
-        let metrics = |degrees: f64| {
-            let mut errors = vec![
-                PairError {
-                    rotation: degrees,
-                    translation: degrees,
-                };
-                2
-            ];
-            errors.extend(
-                [PairError {
-                    rotation: 45.0,
-                    translation: 45.0,
-                }; 2],
-            );
-            CameraMetrics::from_errors(&errors)
-        };
         let mut model = XFactorConfig::tiny(32);
         model.pose_dim = pose_dim;
-        EvaluationReport {
-            checkpoint: PathBuf::from("model.safetensors"),
-            spec: EvaluationSpec::default(),
-            model,
-            trained: ModelReport {
-                reconstruction: ReconstructionReport {
-                    frames: 1,
-                    psnr: 20.0,
-                    ssim: 0.5,
-                    lpips: None,
-                },
-                tps: TpsReport {
-                    oracle: "ground-truth".into(),
-                    pairs: 4,
-                    frames_per_pair: 5,
-                    skipped: 0,
-                    failures: 0,
-                    model: metrics(transfer),
-                    ideal_transfer: metrics(0.0),
-                    unrelated_trajectory: metrics(90.0),
-                },
-                probe: ProbeReport {
-                    train_samples: 8,
-                    test_sequences: 1,
-                    final_loss: 0.1,
-                    metrics: metrics(probe),
-                },
-                sequences: Vec::new(),
+        let trained = ModelReport {
+            reconstruction: ReconstructionReport {
+                frames: 1,
+                psnr: 20.0,
+                ssim: 0.5,
+                lpips: None,
+                psnr_spread: 0.0,
+                ssim_spread: 0.0,
             },
-            untrained: None,
+            tps: TpsReport {
+                oracle: "ground-truth".into(),
+                pairs: 4,
+                frames_per_pair: 5,
+                skipped: 0,
+                failures: 0,
+                context_views: 1,
+                copied_transfers: 0,
+                copy_share: 0.0,
+                model: metrics(transfer),
+                ideal_transfer: metrics(0.0),
+                unrelated_trajectory: metrics(90.0),
+            },
+            probe: ProbeReport {
+                train_samples: 8,
+                test_sequences: 1,
+                final_loss: 0.1,
+                metrics: metrics(probe),
+            },
+            sequences: Vec::new(),
+        };
+        let baselines = Baselines {
+            copy: trained.reconstruction.clone(),
+            mean_colour: trained.reconstruction.clone(),
+            tps_no_motion: metrics(90.0),
+            probe_no_motion: metrics(90.0),
+        };
+        EvaluationReport {
+            spec: EvaluationSpec::default(),
+            scenes: EvaluationScenes {
+                split: "test".into(),
+                scenes: 6,
+                trajectories: 8,
+                frames: 8,
+                seed: 0,
+            },
+            model,
+            stages: vec![StageReport {
+                checkpoint: CheckpointUnderTest {
+                    label: "checkpoint1".into(),
+                    weights: PathBuf::from("model.safetensors"),
+                    step: None,
+                    context_views: 1,
+                },
+                trained,
+                untrained: None,
+                baselines,
+            }],
+            departures: Vec::new(),
             figures: Vec::new(),
             seconds: 1.0,
         }

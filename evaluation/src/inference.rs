@@ -181,23 +181,35 @@ pub fn transfer(
     scene: &[Image],
     device: &Device,
 ) -> Result<Vec<Image>, EvalError> {
+    let positions: Vec<i64> = (0..scene.len() as i64).collect();
+    let scene: Vec<Image> = proximity_permutation(&positions)
+        .into_iter()
+        .map(|i| scene[i].clone())
+        .collect();
+    render_along(model, trajectory, reference, &scene, device)
+}
+
+/// Renders the context views `scene` (in the order given; the first is the reference, seen from
+/// where `trajectory[reference]` was taken) along `trajectory`'s motion.
+pub fn render_along(
+    model: &XFactor,
+    trajectory: &[Image],
+    reference: usize,
+    scene: &[Image],
+    device: &Device,
+) -> Result<Vec<Image>, EvalError> {
     let anchor = trajectory.get(reference).ok_or_else(|| {
         EvalError::Invalid(format!(
             "reference frame {reference} of a {}-frame trajectory",
             trajectory.len()
         ))
     })?;
-    let positions: Vec<i64> = (0..scene.len() as i64).collect();
-    let scene: Vec<Image> = proximity_permutation(&positions)
-        .into_iter()
-        .map(|i| scene[i].clone())
-        .collect();
     let scene_reference = scene
         .first()
         .ok_or_else(|| EvalError::Invalid("the scene has no frames".to_string()))?;
     let targets = pose_latents(model, anchor, trajectory, device)?;
-    let context_latents = pose_latents(model, scene_reference, &scene, device)?;
-    render_targets(model, &scene, &context_latents, &targets, device)
+    let context_latents = pose_latents(model, scene_reference, scene, device)?;
+    render_targets(model, scene, &context_latents, &targets, device)
 }
 
 #[cfg(test)]

@@ -253,10 +253,10 @@ fn score_probe(
     probe: &Mlp3,
     test: &[ProbeSequence],
     dims: usize,
-    spec: &ProbeSpec,
+    (spec, seed): (&ProbeSpec, u64),
     device: &Device,
 ) -> Result<(CameraMetrics, Vec<ProbePath>), EvalError> {
-    let mut errors = Vec::new();
+    let mut groups = Vec::with_capacity(test.len());
     let mut trajectories = Vec::with_capacity(test.len());
     let mut paths = Vec::with_capacity(test.len());
     for sequence in test {
@@ -279,12 +279,26 @@ fn score_probe(
             })
             .collect();
         let reference = relative_to_reference(&sequence.poses, 0);
-        errors.extend(trajectory_errors(&reference, &predicted));
+        groups.push(trajectory_errors(&reference, &predicted));
         trajectories.push(trajectory_error(&reference, &predicted));
         paths.push((reference, predicted));
     }
-    let metrics = CameraMetrics::from_errors(&errors).with_trajectory_errors(&trajectories);
+    let metrics = CameraMetrics::from_groups(&groups, seed).with_trajectory_errors(&trajectories);
     Ok((metrics, paths))
+}
+
+/// The probe's "no camera motion" baseline: every frame predicted at the reference pose, scored
+/// on the held-out sequences' true `poses` exactly as a probe is.
+pub fn no_motion(poses: &[Vec<CameraPose>], seed: u64) -> CameraMetrics {
+    let mut groups = Vec::with_capacity(poses.len());
+    let mut trajectories = Vec::with_capacity(poses.len());
+    for sequence in poses {
+        let reference = relative_to_reference(sequence, 0);
+        let still = vec![CameraPose::identity(); reference.len()];
+        groups.push(trajectory_errors(&reference, &still));
+        trajectories.push(trajectory_error(&reference, &still));
+    }
+    CameraMetrics::from_groups(&groups, seed).with_trajectory_errors(&trajectories)
 }
 
 /// Trains a probe on `train` and scores it on `test`, on `device` (which must support
@@ -308,7 +322,7 @@ pub fn run_probe(
         ));
     }
     let (probe, final_loss) = train_probe(&set, dims, spec, seed, device)?;
-    let (metrics, paths) = score_probe(&probe, test, dims, spec, device)?;
+    let (metrics, paths) = score_probe(&probe, test, dims, (spec, seed), device)?;
     Ok((
         ProbeReport {
             train_samples: set.inputs.len(),

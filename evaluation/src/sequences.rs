@@ -68,23 +68,22 @@ pub async fn load_protocol_async(
 ) -> Result<ProtocolSet, EvalError> {
     let root = DataRoot::open(&protocol.uri)?;
     let indexed = index(&root, protocol.kind).await?;
-    let tests: Vec<_> = indexed
+    let tests = indexed
         .manifest
         .sequences
         .iter()
         .filter(|s| s.split == Split::Test)
-        .collect();
+        .count();
+    let (chosen, skipped_short) = indexed
+        .manifest
+        .evaluated_test_sequences(protocol.length, protocol.count);
     let mut set = ProtocolSet {
         protocol: protocol.clone(),
         sequences: Vec::new(),
-        skipped_short: 0,
+        skipped_short,
     };
-    for sequence in &tests {
-        if set.sequences.len() == protocol.count {
-            break;
-        }
+    for sequence in chosen {
         let Some(frame_indices) = protocol_frames(sequence.frames.len(), protocol.length) else {
-            set.skipped_short += 1;
             continue;
         };
         let mut frames = Vec::with_capacity(frame_indices.len());
@@ -106,10 +105,7 @@ pub async fn load_protocol_async(
     if set.sequences.is_empty() {
         return Err(EvalError::Invalid(format!(
             "evaluate.sequences: {:?} root `{}` has no test sequence of at least {} frames ({} test sequences)",
-            protocol.kind,
-            protocol.uri,
-            protocol.length,
-            tests.len()
+            protocol.kind, protocol.uri, protocol.length, tests
         )));
     }
     Ok(set)

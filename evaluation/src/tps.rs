@@ -5,6 +5,10 @@
 //! On generated data every trajectory is rendered in every scene, so each pair also carries two
 //! calibrations of the oracle: B's true rendering along A's motion (a perfect transfer) and B
 //! along an unrelated trajectory (a failed one).
+//!
+//! A render that reproduces A's video instead of showing B would read as a perfect transfer to
+//! any oracle, so every render is first checked against both scenes' frames: a transfer whose
+//! renders are mostly closer to A's frames than to any of B's counts as a failed one.
 
 use data::Image;
 use data::rng::Stream;
@@ -77,7 +81,7 @@ pub fn target_frames(frames: usize, count: usize) -> Vec<usize> {
 }
 
 /// The frames of one TPS pair: A's targets, B's true rendering along them, B along another
-/// motion, and B's context view.
+/// motion, and B's context views.
 #[derive(Debug, Clone)]
 pub struct PairFrames {
     /// A's target frames (the first is A's reference).
@@ -86,15 +90,17 @@ pub struct PairFrames {
     pub ideal: Vec<Image>,
     /// B rendered along an unrelated motion.
     pub unrelated: Vec<Image>,
-    /// B's context view (B's view of A's first pose).
-    pub context: Image,
+    /// B's context views: first B's view of A's first pose (the reference), then, for a
+    /// multi-view model, views spread along the unrelated motion (never on A's path).
+    pub contexts: Vec<Image>,
 }
 
-/// Gathers the frames of `pair` at `indices`.
+/// Gathers the frames of `pair` at `indices`, with `context_views` context views of B.
 pub fn pair_frames(
     dataset: &SyntheticDataset,
     pair: &TpsPair,
     indices: &[usize],
+    context_views: usize,
 ) -> Result<PairFrames, EvalError> {
     let sequence = |scene, trajectory| {
         dataset.sequence(scene, trajectory).ok_or_else(|| {
@@ -112,12 +118,47 @@ pub fn pair_frames(
             .map(|&i| frames[i].clone())
             .collect::<Vec<_>>()
     };
+    let mut contexts = vec![b.frames[indices[0]].clone()];
+    let extra = crate::video::evenly_spaced(other.frames.len(), context_views.saturating_sub(1));
+    contexts.extend(extra.into_iter().map(|i| other.frames[i].clone()));
     Ok(PairFrames {
         source: pick(&a.frames),
         ideal: pick(&b.frames),
         unrelated: pick(&other.frames),
-        context: b.frames[indices[0]].clone(),
+        contexts,
     })
+}
+
+/// Mean squared difference of two images of one size.
+fn mean_squared(a: &Image, b: &Image) -> f64 {
+    let sum: f64 = a
+        .pixels
+        .iter()
+        .zip(&b.pixels)
+        .map(|(x, y)| f64::from(x - y).powi(2))
+        .sum();
+    sum / a.pixels.len().max(1) as f64
+}
+
+/// Renders of `renders` that are closer to some frame of A's video than to every frame of B
+/// the pair holds: copies of the source rather than views of the target scene.
+fn copies_of_source(renders: &[Image], frames: &PairFrames) -> usize {
+    let nearest = |render: &Image, pool: &mut dyn Iterator<Item = &Image>| {
+        pool.map(|frame| mean_squared(render, frame))
+            .fold(f64::INFINITY, f64::min)
+    };
+    renders
+        .iter()
+        .filter(|render| {
+            let source = nearest(render, &mut frames.source.iter());
+            let mut target_scene = frames
+                .ideal
+                .iter()
+                .chain(&frames.unrelated)
+                .chain(&frames.contexts);
+            source < nearest(render, &mut target_scene)
+        })
+        .count()
 }
 
 /// TPS of one renderer and of the two calibrations.
@@ -133,6 +174,15 @@ pub struct TpsReport {
     pub skipped: usize,
     /// Model renders the oracle could not read (their frame pairs count as wrong).
     pub failures: usize,
+    /// Context views of B each transfer rendered from.
+    #[serde(default)]
+    pub context_views: usize,
+    /// Transfers whose renders were mostly copies of the source video (scored as failed).
+    #[serde(default)]
+    pub copied_transfers: usize,
+    /// Share of all renders closer to the source video than to the target scene.
+    #[serde(default)]
+    pub copy_share: f64,
     /// The model's transfers.
     pub model: CameraMetrics,
     /// B's true rendering along A's motion (perfect transfer).
@@ -141,22 +191,35 @@ pub struct TpsReport {
     pub unrelated_trajectory: CameraMetrics,
 }
 
-/// Runs TPS: `render(source, context)` must return one render per source frame.
+/// How a TPS run is drawn: the frames of each transfer, the context views of B, and the seed of
+/// the spreads.
+#[derive(Debug, Clone, Copy)]
+pub struct TpsSettings {
+    /// Equally spaced target frames per transfer.
+    pub frames_per_pair: usize,
+    /// Context views of B per transfer.
+    pub context_views: usize,
+    /// Seed of the bootstrap spreads.
+    pub seed: u64,
+}
+
+/// Runs TPS: `render(source, contexts)` must return one render per source frame.
 pub fn transferability(
     dataset: &SyntheticDataset,
     pairs: &[TpsPair],
-    frames_per_pair: usize,
+    settings: TpsSettings,
     oracle: &dyn PoseOracle,
-    mut render: impl FnMut(&[Image], &Image) -> Result<Vec<Image>, EvalError>,
+    mut render: impl FnMut(&[Image], &[Image]) -> Result<Vec<Image>, EvalError>,
 ) -> Result<TpsReport, EvalError> {
     let frames = dataset.sequences.first().map_or(0, |s| s.frames.len());
-    let indices = target_frames(frames, frames_per_pair);
+    let indices = target_frames(frames, settings.frames_per_pair);
     let (mut model, mut ideal, mut unrelated) =
         (Scored::default(), Scored::default(), Scored::default());
-    let (mut skipped, mut failures) = (0, 0);
+    let (mut skipped, mut failures, mut copied_transfers, mut copied_renders, mut renders_seen) =
+        (0, 0, 0, 0, 0);
     let pair_count = indices.len() * indices.len().saturating_sub(1) / 2;
     for pair in pairs {
-        let frames = pair_frames(dataset, pair, &indices)?;
+        let frames = pair_frames(dataset, pair, &indices, settings.context_views)?;
         let reference = match oracle.estimate(&frames.source) {
             Ok(poses) => poses,
             Err(error) => {
@@ -168,19 +231,26 @@ pub fn transferability(
         let score = |images: &[Image], into: &mut Scored| -> bool {
             match oracle.estimate(images) {
                 Ok(poses) => {
-                    into.pairs.extend(trajectory_errors(&reference, &poses));
+                    into.groups.push(trajectory_errors(&reference, &poses));
                     into.trajectories.push(trajectory_error(&reference, &poses));
                     true
                 }
                 Err(error) => {
                     tracing::debug!(?pair, %error, "oracle cannot read a transfer");
-                    into.pairs.extend(std::iter::repeat_n(FAILED, pair_count));
+                    into.groups.push(vec![FAILED; pair_count]);
                     false
                 }
             }
         };
-        let renders = render(&frames.source, &frames.context)?;
-        failures += usize::from(!score(&renders, &mut model));
+        let renders = render(&frames.source, &frames.contexts)?;
+        let copies = copies_of_source(&renders, &frames);
+        (copied_renders, renders_seen) = (copied_renders + copies, renders_seen + renders.len());
+        if 2 * copies > renders.len() {
+            copied_transfers += 1;
+            model.groups.push(vec![FAILED; pair_count]);
+        } else {
+            failures += usize::from(!score(&renders, &mut model));
+        }
         score(&frames.ideal, &mut ideal);
         score(&frames.unrelated, &mut unrelated);
     }
@@ -190,23 +260,26 @@ pub fn transferability(
         frames_per_pair: indices.len(),
         skipped,
         failures,
-        model: model.metrics(),
-        ideal_transfer: ideal.metrics(),
-        unrelated_trajectory: unrelated.metrics(),
+        context_views: settings.context_views,
+        copied_transfers,
+        copy_share: copied_renders as f64 / renders_seen.max(1) as f64,
+        model: model.metrics(settings.seed),
+        ideal_transfer: ideal.metrics(settings.seed),
+        unrelated_trajectory: unrelated.metrics(settings.seed),
     })
 }
 
-/// Pair errors of every scored transfer (failures as the worst error) and the trajectory errors
-/// of those the oracle could read.
+/// Pair errors of every scored transfer, one group each (failures as the worst error), and the
+/// trajectory errors of those the oracle could read.
 #[derive(Default)]
 struct Scored {
-    pairs: Vec<PairError>,
+    groups: Vec<Vec<PairError>>,
     trajectories: Vec<TrajectoryError>,
 }
 
 impl Scored {
-    fn metrics(&self) -> CameraMetrics {
-        CameraMetrics::from_errors(&self.pairs).with_trajectory_errors(&self.trajectories)
+    fn metrics(&self, seed: u64) -> CameraMetrics {
+        CameraMetrics::from_groups(&self.groups, seed).with_trajectory_errors(&self.trajectories)
     }
 }
 
@@ -231,13 +304,18 @@ mod tests {
                 .all(|p| p.scene_a != p.scene_b && p.trajectory != p.other_trajectory)
         );
         assert_eq!(target_frames(9, 5), vec![0, 2, 4, 6, 8]);
-        // A "renderer" that returns the ideal transfer, and one that returns an unrelated one.
-        let report = transferability(&dataset, &pairs, 5, &oracle, |source, _| {
+        // A "renderer" that returns the ideal transfer: B's own frames along A's motion.
+        let settings = TpsSettings {
+            frames_per_pair: 5,
+            context_views: 1,
+            seed: 0,
+        };
+        let report = transferability(&dataset, &pairs, settings, &oracle, |source, contexts| {
             let pose_source = oracle.estimate(source)?;
             Ok(dataset
                 .sequences
                 .iter()
-                .find(|s| s.poses[0] == pose_source[0] && s.frames[0] != source[0])
+                .find(|s| s.poses[0] == pose_source[0] && s.frames[0] == contexts[0])
                 .map(|s| {
                     [0, 2, 4, 6, 8]
                         .iter()
@@ -258,6 +336,43 @@ mod tests {
         let random = report.unrelated_trajectory.at(30).unwrap();
         assert!(random.auc < 0.5, "{:?}", report.unrelated_trajectory);
         assert!(random.auc < perfect.auc);
+        assert_eq!((report.copied_transfers, report.copy_share), (0, 0.0));
         assert!(draw_pairs(0, 1, 4, 2).is_err());
+    }
+
+    #[test]
+    fn a_renderer_that_returns_the_source_video_scores_no_transfer() {
+        let config = SceneConfig {
+            image_size: 24,
+            ..SceneConfig::default()
+        };
+        let dataset = SyntheticDataset::generate(2, 3, 4, 9, &config);
+        let oracle = GroundTruthOracle::from_dataset(&dataset);
+        let pairs = draw_pairs(1, 3, 4, 6).unwrap();
+        let settings = TpsSettings {
+            frames_per_pair: 5,
+            context_views: 2,
+            seed: 0,
+        };
+        let report = transferability(&dataset, &pairs, settings, &oracle, |source, contexts| {
+            assert_eq!(contexts.len(), 2);
+            Ok(source.to_vec())
+        })
+        .unwrap();
+        assert_eq!(report.copied_transfers, 6);
+        assert_eq!(report.copy_share, 1.0);
+        for scores in &report.model.thresholds {
+            assert_eq!(
+                (
+                    scores.rotation_accuracy,
+                    scores.translation_accuracy,
+                    scores.auc
+                ),
+                (0.0, 0.0, 0.0),
+                "{scores:?}"
+            );
+        }
+        // The oracle alone would have called the copy perfect.
+        assert!(report.ideal_transfer.at(30).unwrap().auc > 0.99);
     }
 }

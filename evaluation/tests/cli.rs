@@ -28,6 +28,8 @@ fn help_lists_every_flag_with_its_default() {
         &["evaluate"],
         &[
             ("--checkpoint", None),
+            ("--context-views", Some("1")),
+            ("--label", None),
             ("--out", None),
             ("--spec", None),
             ("--oracle", None),
@@ -54,6 +56,7 @@ fn bad_values_are_refused_naming_the_flag() {
     for (bad, flag) in [
         (&["--backend", "tpu"][..], "--backend"),
         (&["--oracle", "colmap"][..], "--oracle"),
+        (&["--context-views", "two"][..], "--context-views"),
         (
             &["--oracle", "classical", "--oracle-command", "p"][..],
             "--oracle-command",
@@ -62,6 +65,12 @@ fn bad_values_are_refused_naming_the_flag() {
         help::assert_refused(XFACTOR, &[&evaluate[..], bad].concat(), flag);
     }
     help::assert_refused(XFACTOR, &["evaluate", "--out", "o"], "--checkpoint");
+    for (bad, flag) in [
+        (&["--context-views", "1,2,3"][..], "--context-views"),
+        (&["--label", "a", "--label", "b"][..], "--label"),
+    ] {
+        help::assert_fails(XFACTOR, &[&evaluate[..], bad].concat(), 1, flag);
+    }
     help::assert_refused(XFACTOR, &["compare", "--out", "o"], "<RUN>");
     help::assert_refused(
         XFACTOR,

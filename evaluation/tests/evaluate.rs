@@ -1,23 +1,20 @@
 //! After a short CPU training run on generated scenes that share camera motions across scenes,
-//! the trained model's TPS and probe numbers beat those of the untrained model; the report
-//! (JSON, Markdown, figures) shows both. Prints the numbers.
+//! the report scores the checkpoint on held-out scenes beside an untrained model and the
+//! pose-free baselines, each figure with its spread, in JSON, Markdown and figures. Prints the
+//! numbers.
 //!
 //! Why 16x16 frames, 1300 steps and a 2e-3 peak learning rate: the ground-truth oracle reads a
-//! render's pose from the generated frame with the nearest 8x8 thumbnail. After 200 steps at
-//! 32x32 (peak 1e-3) the renders barely depend on the pose latent, so all five renders of a
-//! transfer matched the same generated frame, their relative translations were zero and every
-//! frame pair scored the conventional 90 degrees (TPS AUC@30 0.004 vs 0.000 untrained). At 16x16
-//! a step is about four times cheaper, and 1300 steps at a higher peak rate teach the renderer
-//! to move the camera in about 70 s on 2 cores (a 3e-3 peak moved the renders as far but left
-//! the probe no better than the untrained model's). TPS uses all 8 frames of 96 transfers (2688
-//! frame pairs) so the comparison is not decided by a handful of renders.
+//! render's pose from the generated frame with the nearest 8x8 thumbnail, and a step at 16x16
+//! is about four times cheaper than at 32x32 (about 70 s of training on 2 cores).
 //!
-//! Why the evaluation draws 16 scenes (10 more than training saw): the release's pose probe
-//! reads PoseEnc's tokens before the pose head, which an untrained network's random features
-//! also describe. Trained on the 4 non-held-out scenes of the training set, the probe
-//! memorised them (training loss 0.11) and scored no better on held-out scenes than the
-//! untrained model's (AUC@30 0.114 vs 0.130); on 14 it generalises, and the trained features
-//! win (0.122 vs 0.085 after 800 probe steps; TPS 0.058 vs 0.000 on these scenes).
+//! What this run can and cannot show, measured on held-out scenes (2026-11-26): its
+//! reconstruction clearly beats an untrained model (PSNR 15.1 vs 10.9 dB), but its transfers
+//! and probe do not beat the untrained model's (TPS AUC@30 0.010 vs 0.006, probe 0.042 vs
+//! 0.048, spreads about 0.004 and 0.02): 6 training scenes are too few to generalise, and with
+//! 48 training scenes the same 1300 steps never learn to move the camera (TPS 0.000). Whether
+//! training teaches transfer that holds on unseen scenes is the first run's guard
+//! (`coordinator/tests/first_run.rs`, 4000 steps at 32x32 on 16 scenes); this test checks
+//! that the evaluation measures and reports it.
 
 use std::path::Path;
 use std::time::Instant;
@@ -25,6 +22,7 @@ use std::time::Instant;
 use burn::tensor::Device;
 use data::scenes::SceneConfig;
 use data::synthetic::SyntheticDataset;
+use evaluation::evaluate::CheckpointUnderTest;
 use evaluation::{EvaluationReport, run_evaluation};
 use settings::evaluation::{EvaluationSpec, OracleSpec, ProbeSpec};
 use settings::objective::Stage1Config;
@@ -36,12 +34,12 @@ use trainer_core::{XFactor, XFactorConfig};
 const SIDE: usize = 16;
 const STEPS: u64 = 1300;
 const SCENES: u64 = 6;
-/// Scenes the evaluation draws: the training scenes and 10 it never saw.
+/// Held-out scenes the evaluation draws (16 give the probe 14 to train on and 2 to test).
 const EVALUATION_SCENES: u64 = 16;
 const TRAJECTORIES: u64 = 8;
 const FRAMES: usize = 8;
 
-fn summary(name: &str, report: &evaluation::evaluate::ModelReport) -> (f64, f64) {
+fn summary(name: &str, report: &evaluation::evaluate::ModelReport) {
     let tps = report.tps.model.at(30).unwrap().auc;
     let probe = report.probe.metrics.at(30).unwrap().auc;
     println!(
@@ -54,7 +52,6 @@ fn summary(name: &str, report: &evaluation::evaluate::ModelReport) -> (f64, f64)
         report.probe.metrics.at(5).unwrap().translation_accuracy,
         report.probe.final_loss,
     );
-    (tps, probe)
 }
 
 /// Trains the small model for [`STEPS`] stage-1 steps on generated scenes and returns the
@@ -125,17 +122,22 @@ fn assert_report_files(report: &EvaluationReport, out: &Path) {
     let json: EvaluationReport =
         serde_json::from_slice(&std::fs::read(out.join("report.json")).unwrap()).unwrap();
     assert_eq!(
-        (json.spec, json.figures.clone()),
+        (json.spec.clone(), json.figures.clone()),
         (report.spec.clone(), report.figures.clone())
     );
-    assert!(
-        (json.trained.tps.model.mean_translation_error
-            - report.trained.tps.model.mean_translation_error)
-            .abs()
-            < 1e-9
-    );
+    let error = |r: &EvaluationReport| r.stages[0].trained.tps.model.mean_translation_error;
+    assert!((error(&json) - error(report)).abs() < 1e-9);
     let markdown = std::fs::read_to_string(out.join("report.md")).unwrap();
-    assert!(markdown.contains("| trained | TPS |") && markdown.contains("| untrained | probe |"));
+    for row in [
+        "| trained | TPS |",
+        "| untrained | probe |",
+        "| no camera motion | TPS |",
+        "| copy nearest context |",
+        "| mean colour |",
+        "**lead over",
+    ] {
+        assert!(markdown.contains(row), "{row} missing from\n{markdown}");
+    }
     for figure in &report.figures {
         let image = image::open(out.join(figure)).unwrap();
         assert!(image.width() > 0, "{figure}");
@@ -144,57 +146,69 @@ fn assert_report_files(report: &EvaluationReport, out: &Path) {
         report
             .figures
             .iter()
-            .any(|f| f == "trained_probe_paths.png")
+            .any(|f| f == "stage1_trained_probe_paths.png")
     );
     assert!(
         report
             .figures
             .iter()
-            .any(|f| f == "untrained_tps_renders.png")
+            .any(|f| f == "stage1_untrained_tps_renders.png")
     );
 }
 
 #[test]
-fn trained_model_beats_untrained_on_tps_and_probe() {
+fn a_trained_checkpoint_is_scored_on_held_out_scenes_beside_its_baselines() {
     let started = Instant::now();
     let scratch = train_to_scratch();
     let trained_at = started.elapsed().as_secs_f64();
 
     let spec = evaluation_spec();
     let out = scratch.path().join("report");
-    let report = run_evaluation(
-        &spec,
-        &scratch.path().join("model.safetensors"),
-        &out,
-        &Device::flex(),
-    )
-    .unwrap();
+    let checkpoint = CheckpointUnderTest {
+        label: "stage1".into(),
+        weights: scratch.path().join("model.safetensors"),
+        step: None,
+        context_views: 1,
+    };
+    let report = run_evaluation(&spec, &[checkpoint], &out, &Device::flex()).unwrap();
+    assert_eq!(report.scenes.split, "test");
+    let stage = &report.stages[0];
     println!(
         "training_seconds={trained_at:.1} evaluation_seconds={:.1}",
         report.seconds
     );
-    let (tps_trained, probe_trained) = summary("trained", &report.trained);
-    let untrained = report.untrained.as_ref().unwrap();
-    let (tps_untrained, probe_untrained) = summary("untrained", untrained);
-    let ideal = report.trained.tps.ideal_transfer.at(30).unwrap().auc;
-    let unrelated = report.trained.tps.unrelated_trajectory.at(30).unwrap().auc;
-    println!("oracle calibration: ideal_auc30={ideal:.3} unrelated_auc30={unrelated:.3}");
-    assert!(ideal > 0.99);
-    assert!(
-        tps_trained > tps_untrained,
-        "TPS {tps_trained} vs untrained {tps_untrained}"
+    summary("trained", &stage.trained);
+    let untrained = stage.untrained.as_ref().unwrap();
+    summary("untrained", untrained);
+    let baselines = &stage.baselines;
+    let tps = &stage.trained.tps;
+    let auc30 = |m: &evaluation::metrics::CameraMetrics| m.at(30).unwrap().auc;
+    println!(
+        "copy_psnr={:.2} mean_colour_psnr={:.2} no_motion_tps_auc30={:.3} no_motion_probe_auc30={:.3} ideal_auc30={:.3} unrelated_auc30={:.3} copy_share={:.3}",
+        baselines.copy.psnr,
+        baselines.mean_colour.psnr,
+        auc30(&baselines.tps_no_motion),
+        auc30(&baselines.probe_no_motion),
+        auc30(&tps.ideal_transfer),
+        auc30(&tps.unrelated_trajectory),
+        tps.copy_share,
     );
+    assert!(auc30(&tps.ideal_transfer) > 0.99);
+    // A camera that never moves has no translation direction: 90 degrees, no AUC.
+    assert_eq!(auc30(&baselines.tps_no_motion), 0.0);
+    assert_eq!(auc30(&baselines.probe_no_motion), 0.0);
+    let (ours, fresh) = (&stage.trained.reconstruction, &untrained.reconstruction);
     assert!(
-        report.trained.tps.model.mean_translation_error
-            < untrained.tps.model.mean_translation_error,
-        "TPS translation errors: trained {:?} untrained {:?}",
-        report.trained.tps.model,
-        untrained.tps.model
+        ours.psnr - fresh.psnr > 4.0 * (ours.psnr_spread + fresh.psnr_spread),
+        "PSNR {ours:?} vs untrained {fresh:?}"
     );
-    assert!(
-        probe_trained > probe_untrained,
-        "probe {probe_trained} vs untrained {probe_untrained}"
-    );
+    for spread in [ours.psnr_spread, ours.ssim_spread] {
+        assert!(spread > 0.0 && spread.is_finite(), "{ours:?}");
+    }
+    assert!(tps.model.spread.is_some_and(|s| s.auc30.is_finite()));
+    // Measured 8.5% (8 of 96 transfers): blurry renders of this small model sometimes sit
+    // nearer the source's frames; a model that copied the source would score 100%.
+    assert!(tps.copy_share < 0.25, "{tps:?}");
 
     assert_report_files(&report, &out);
 }

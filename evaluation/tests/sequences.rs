@@ -8,6 +8,7 @@ use std::path::Path;
 
 use burn::tensor::Device;
 use data::decode::decode_frame;
+use evaluation::evaluate::CheckpointUnderTest;
 use evaluation::run_evaluation;
 use evaluation::sequences::load_protocol;
 use settings::data::DatasetKind;
@@ -122,9 +123,16 @@ fn the_evaluation_reports_each_protocol_dataset() {
         ..EvaluationSpec::default()
     };
     let out = dir.path().join("report");
-    let report = run_evaluation(&spec, &weights, &out, &Device::flex()).unwrap();
-    let [set] = report.trained.sequences.as_slice() else {
-        panic!("one dataset: {:?}", report.trained.sequences);
+    let checkpoint = CheckpointUnderTest {
+        label: "checkpoint".into(),
+        weights,
+        step: None,
+        context_views: 1,
+    };
+    let report = run_evaluation(&spec, &[checkpoint], &out, &Device::flex()).unwrap();
+    let sequences = &report.stages[0].trained.sequences;
+    let [set] = sequences.as_slice() else {
+        panic!("one dataset: {sequences:?}");
     };
     assert_eq!(
         (set.kind, set.length, set.sequences, set.skipped_short),

@@ -35,6 +35,10 @@ pub struct EvaluationSpec {
     pub compare_untrained: bool,
     /// Real test sequences reconstructed under E-RayZer's protocol, one entry per dataset.
     pub sequences: Vec<SequenceProtocol>,
+    /// What the evaluated training departs from the release in (a smaller model, a stage 2
+    /// that keeps stage 1's Render, ...), in words: the report lists them beside the
+    /// evaluation's own departures, so its figures are never read as the release's.
+    pub notes: Vec<String>,
 }
 
 /// E-RayZer's evaluation protocol on one dataset's test split: every evaluated sequence has the
@@ -139,6 +143,7 @@ impl Default for EvaluationSpec {
             lpips_weights: None,
             compare_untrained: true,
             sequences: Vec::new(),
+            notes: Vec::new(),
         }
     }
 }

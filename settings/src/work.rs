@@ -92,11 +92,24 @@ pub struct RingSecrets {
     pub left: String,
 }
 
-/// The evaluation of stage 2's final weights, on a group of one.
+/// One stage's final weights, scored as that stage trained them.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct CheckpointToEvaluate {
+    /// The stage that committed them.
+    pub stage: Phase,
+    /// The committed checkpoint's location.
+    pub weights: String,
+    /// The step it was committed at.
+    pub step: u64,
+    /// Context views it renders from (stage 1: 1; stage 2: its views less the target).
+    pub context_views: usize,
+}
+
+/// The evaluation of every stage's final weights, on a group of one.
 #[derive(Debug, Clone, PartialEq)]
 pub struct EvaluateWork {
-    /// The committed checkpoint to evaluate.
-    pub weights: String,
+    /// The committed checkpoints to evaluate, stage 1 first; never empty.
+    pub checkpoints: Vec<CheckpointToEvaluate>,
     /// Where the report goes (URI prefix).
     pub report_prefix: String,
     /// The device the job asks for.

@@ -202,6 +202,7 @@ fn print_figures(job: &LocalJob, seconds: f64) -> anyhow::Result<()> {
         seconds,
         job.report_path().display()
     );
+    println!("departs from the release: {}", job.departures().join("; "));
     print_where_to_look(job, report["evaluation"].as_str().map(Path::new));
     Ok(())
 }
@@ -309,40 +310,79 @@ impl StepTimes {
     }
 }
 
-/// The headline numbers of the evaluation report at `location` (trained model, and the
-/// untrained baseline when the report has one).
+/// The headline numbers of the evaluation report at `location`: for each scored checkpoint
+/// (stage 1, stage 2) its context views, then reconstruction, TPS and probe figures of the
+/// trained model with their spreads beside the untrained model and the pose-free baselines,
+/// and the lead over the best baseline.
 fn evaluation_figures(location: &Path) -> anyhow::Result<String> {
     let path = location.join("report.json");
     let report: serde_json::Value = serde_json::from_slice(
         &std::fs::read(&path).with_context(|| format!("reading {}", path.display()))?,
     )
     .with_context(|| format!("{} is not JSON", path.display()))?;
-    let auc30 = |metrics: &serde_json::Value| {
-        metrics["thresholds"]
-            .as_array()
-            .and_then(|t| t.iter().find(|s| s["threshold"] == 30))
-            .and_then(|s| s["auc"].as_f64())
-            .unwrap_or(f64::NAN)
-    };
-    let mut figures = Vec::new();
-    for model in ["trained", "untrained"] {
-        let numbers = &report[model];
-        if numbers.is_null() {
-            continue;
-        }
-        let reconstruction =
-            |key: &str| numbers["reconstruction"][key].as_f64().unwrap_or(f64::NAN);
-        figures.push(format!(
-            "{model}_psnr={:.2} {model}_ssim={:.3} {model}_tps_auc30={:.3} {model}_probe_auc30={:.3}",
-            reconstruction("psnr"),
-            reconstruction("ssim"),
-            auc30(&numbers["tps"]["model"]),
-            auc30(&numbers["probe"]["metrics"])
-        ));
+    let scenes = &report["scenes"];
+    let mut figures = vec![format!(
+        "eval_split={} eval_scenes={} eval_paths={}",
+        scenes["split"].as_str().unwrap_or("?"),
+        scenes["scenes"],
+        scenes["trajectories"]
+    )];
+    for stage in report["stages"].as_array().into_iter().flatten() {
+        figures.push(stage_figures(stage));
     }
     figures.push(format!(
         "evaluation={}",
         location.join("report.md").display()
     ));
     Ok(figures.join(" "))
+}
+
+/// `SE3_Auc@30` of a camera-metrics object and its spread.
+fn auc30(metrics: &serde_json::Value) -> (f64, f64) {
+    let value = metrics["thresholds"]
+        .as_array()
+        .and_then(|t| t.iter().find(|s| s["threshold"] == 30))
+        .and_then(|s| s["auc"].as_f64())
+        .unwrap_or(f64::NAN);
+    (
+        value,
+        metrics["spread"]["auc30"].as_f64().unwrap_or(f64::NAN),
+    )
+}
+
+/// One scored checkpoint's figures, every key prefixed with its label (`stage1_...`).
+fn stage_figures(stage: &serde_json::Value) -> String {
+    let label = stage["checkpoint"]["label"]
+        .as_str()
+        .unwrap_or("checkpoint");
+    let number = |value: &serde_json::Value| value.as_f64().unwrap_or(f64::NAN);
+    let (trained, untrained, baselines) =
+        (&stage["trained"], &stage["untrained"], &stage["baselines"]);
+    let psnr = |r: &serde_json::Value| number(&r["psnr"]);
+    let (copy, mean_colour) = (psnr(&baselines["copy"]), psnr(&baselines["mean_colour"]));
+    let ours = psnr(&trained["reconstruction"]);
+    let (tps, tps_spread) = auc30(&trained["tps"]["model"]);
+    let (probe, probe_spread) = auc30(&trained["probe"]["metrics"]);
+    format!(
+        "{label}_step={} {label}_contexts={} \
+         {label}_psnr={ours:.2} {label}_psnr_spread={:.2} {label}_copy_psnr={copy:.2} \
+         {label}_mean_colour_psnr={mean_colour:.2} {label}_untrained_psnr={:.2} \
+         {label}_psnr_lead_over_copy={:.2} {label}_psnr_lead_over_best_baseline={:.2} \
+         {label}_tps_auc30={tps:.3} {label}_tps_auc30_spread={tps_spread:.3} \
+         {label}_no_motion_tps_auc30={:.3} {label}_untrained_tps_auc30={:.3} \
+         {label}_tps_copy_share={:.3} \
+         {label}_probe_auc30={probe:.3} {label}_probe_auc30_spread={probe_spread:.3} \
+         {label}_no_motion_probe_auc30={:.3} {label}_untrained_probe_auc30={:.3}",
+        stage["checkpoint"]["step"],
+        stage["checkpoint"]["context_views"],
+        number(&trained["reconstruction"]["psnr_spread"]),
+        psnr(&untrained["reconstruction"]),
+        ours - copy,
+        ours - copy.max(mean_colour),
+        auc30(&baselines["tps_no_motion"]).0,
+        auc30(&untrained["tps"]["model"]).0,
+        number(&trained["tps"]["copy_share"]),
+        auc30(&baselines["probe_no_motion"]).0,
+        auc30(&untrained["probe"]["metrics"]).0,
+    )
 }

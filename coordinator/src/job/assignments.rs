@@ -2,8 +2,11 @@
 //! with which settings.
 
 use proto::convert::{device_to_wire, devices_to_wire, phase_to_wire};
-use proto::v1::{Assignment, EvaluateAssignment, Finish, TrainAssignment, assignment::Work};
+use proto::v1::{
+    Assignment, CheckpointToEvaluate, EvaluateAssignment, Finish, TrainAssignment, assignment::Work,
+};
 use settings::Phase;
+use settings::train::StageObjective;
 
 use super::records::Durable;
 use crate::plan::Plan;
@@ -68,14 +71,37 @@ pub fn train(
     }
 }
 
-/// The evaluation of stage 2's final weights, for the one worker of the group; `None` when
-/// the job has no evaluation section.
+/// Context views a stage's model renders from: stage 1's one, stage 2's views less the target.
+fn context_views(plan: &Plan, phase: Phase) -> u64 {
+    match &plan.stage(phase).train.objective {
+        StageObjective::Stage1(_) => 1,
+        StageObjective::Stage2(stage2) => stage2.views.saturating_sub(1).max(1) as u64,
+    }
+}
+
+/// The evaluation of both stages' final weights (each scored as its stage trained), for the
+/// one worker of the group; `None` when the job has no evaluation section.
 pub fn evaluate(plan: &Plan, durable: &Durable, generation: u64) -> Option<Assignment> {
     let spec = plan.config.evaluate.as_ref()?;
+    let finals = [
+        (Phase::Stage1, &durable.stage1_final),
+        (Phase::Stage2, &durable.stage2_final),
+    ];
+    let checkpoints = finals
+        .into_iter()
+        .filter_map(|(phase, location)| {
+            Some(CheckpointToEvaluate {
+                stage: phase_to_wire(phase) as i32,
+                weights: location.clone()?,
+                step: plan.stage(phase).steps,
+                context_views: context_views(plan, phase),
+            })
+        })
+        .collect();
     Some(Assignment {
         generation,
         work: Some(Work::Evaluate(EvaluateAssignment {
-            weights: durable.stage2_final.clone().unwrap_or_default(),
+            checkpoints,
             report_prefix: prefix(plan, "evaluation"),
             device: device_to_wire(plan.config.workers.device) as i32,
             model: Some((&plan.model).into()),

@@ -129,7 +129,14 @@ impl JobState {
             Some(Work::Train(train)) => {
                 (train.resume_from.clone(), train.init_weights_from.clone())
             }
-            Some(Work::Evaluate(evaluate)) => (String::new(), evaluate.weights.clone()),
+            Some(Work::Evaluate(evaluate)) => {
+                let weights: Vec<&str> = evaluate
+                    .checkpoints
+                    .iter()
+                    .map(|c| c.weights.as_str())
+                    .collect();
+                (String::new(), weights.join(" "))
+            }
             _ => (String::new(), String::new()),
         };
         self.report.generations.push(GenerationStart {

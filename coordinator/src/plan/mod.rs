@@ -13,6 +13,7 @@ use crate::config::{ClusterConfig, DataConfig, StageConfig};
 
 mod datasets;
 mod describe;
+mod held_out;
 
 use datasets::{TrainManifest, index_datasets};
 
@@ -60,6 +61,44 @@ pub enum PlanError {
         /// What failed (naming the file).
         #[source]
         source: SplitError,
+    },
+    /// An evaluation dataset's root could not be opened for the held-out check.
+    #[error("evaluate.sequences[{index}] ({kind} at {uri})")]
+    EvaluationOpen {
+        /// Position in the YAML list.
+        index: usize,
+        /// Its kind.
+        kind: &'static str,
+        /// Its root.
+        uri: String,
+        /// What failed.
+        #[source]
+        source: StoreError,
+    },
+    /// An evaluation dataset could not be indexed for the held-out check.
+    #[error("evaluate.sequences[{index}] ({kind} at {uri})")]
+    EvaluationIndex {
+        /// Position in the YAML list.
+        index: usize,
+        /// Its kind.
+        kind: &'static str,
+        /// Its root.
+        uri: String,
+        /// What failed.
+        #[source]
+        source: CacheError,
+    },
+    /// The evaluation would score scenes the training data holds.
+    #[error(
+        "{what}: {count} evaluated scene(s) are also training data ({named}); evaluate on scenes no training step reads"
+    )]
+    EvaluationOverlap {
+        /// The evaluation data, as the YAML names it.
+        what: String,
+        /// Scenes shared.
+        count: usize,
+        /// The first few shared scenes' ids.
+        named: String,
     },
 }
 
@@ -138,6 +177,7 @@ impl Plan {
             }
             DataConfig::Datasets(datasets) => index_datasets(datasets).await?,
         };
+        held_out::check_held_out(&config, &manifests).await?;
         let stages = [
             stage_plan(
                 &config,

@@ -140,8 +140,13 @@ impl TensorBoard {
         let wall_time = now();
         let parsed: Value = serde_json::from_slice(&report).unwrap_or(Value::Null);
         let mut scalars = Vec::new();
-        for model in ["trained", "untrained"] {
-            flatten(model, &parsed[model], &mut scalars);
+        for stage in parsed["stages"].as_array().into_iter().flatten() {
+            let label = stage["checkpoint"]["label"]
+                .as_str()
+                .unwrap_or("checkpoint");
+            for part in ["trained", "untrained", "baselines"] {
+                flatten(&format!("{label}/{part}"), &stage[part], &mut scalars);
+            }
         }
         let figures: Vec<String> = location
             .list()

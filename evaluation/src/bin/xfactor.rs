@@ -7,9 +7,9 @@
 
 use std::path::PathBuf;
 
-use anyhow::Context;
+use anyhow::{Context, bail};
 use clap::{Parser, Subcommand, ValueEnum};
-use evaluation::evaluate::read_spec;
+use evaluation::evaluate::{CheckpointUnderTest, read_spec};
 use evaluation::{Sampling, TransferRequest, run_evaluation, run_transfer_sampled};
 use settings::evaluation::OracleSpec;
 use telemetry::logging::LogArgs;
@@ -118,9 +118,17 @@ enum Oracle {
 
 #[derive(Debug, clap::Args)]
 struct EvaluateArgs {
-    /// Model weights, with their .json configuration beside them
-    #[arg(long, value_name = "MODEL.safetensors")]
-    checkpoint: PathBuf,
+    /// Model weights, with their .json configuration beside them; repeat to score several
+    /// checkpoints (stage 1's, then stage 2's) side by side
+    #[arg(long, value_name = "MODEL.safetensors", required = true)]
+    checkpoint: Vec<PathBuf>,
+    /// Context views each checkpoint renders from (1: the stereo model; stage 2: its views less
+    /// one); one value for all checkpoints or one per checkpoint
+    #[arg(long, value_name = "N", default_value = "1", value_delimiter = ',')]
+    context_views: Vec<usize>,
+    /// Each checkpoint's name in the report (default: checkpoint1, checkpoint2, ...)
+    #[arg(long, value_name = "NAME")]
+    label: Vec<String>,
     /// Folder the report and figures are written to (created if needed)
     #[arg(long, value_name = "DIR")]
     out: PathBuf,
@@ -196,11 +204,48 @@ fn evaluate(args: EvaluateArgs) -> anyhow::Result<()> {
     if let Some(lpips) = args.lpips {
         spec.lpips_weights = Some(lpips);
     }
+    let checkpoints = checkpoints_under_test(&args.checkpoint, &args.context_views, &args.label)?;
     let device = args.backend.backend.device()?;
-    let report = run_evaluation(&spec, &args.checkpoint, &args.out, &device)
-        .with_context(|| format!("evaluating {}", args.checkpoint.display()))?;
+    let report = run_evaluation(&spec, &checkpoints, &args.out, &device).context("evaluating")?;
     print!("{}", evaluation::evaluate::markdown(&report));
     Ok(())
+}
+
+/// Pairs each `--checkpoint` with its context views and label; a count that matches neither one
+/// nor the checkpoints is refused naming both.
+fn checkpoints_under_test(
+    weights: &[PathBuf],
+    context_views: &[usize],
+    labels: &[String],
+) -> anyhow::Result<Vec<CheckpointUnderTest>> {
+    let fits = |n: usize| n == 1 || n == weights.len();
+    if !fits(context_views.len()) {
+        bail!(
+            "--context-views gives {} values for {} checkpoints: give one for all, or one each",
+            context_views.len(),
+            weights.len()
+        );
+    }
+    if !labels.is_empty() && labels.len() != weights.len() {
+        bail!(
+            "--label is given {} times for {} checkpoints: give one each, or none",
+            labels.len(),
+            weights.len()
+        );
+    }
+    Ok(weights
+        .iter()
+        .enumerate()
+        .map(|(i, path)| CheckpointUnderTest {
+            label: labels
+                .get(i)
+                .cloned()
+                .unwrap_or_else(|| format!("checkpoint{}", i + 1)),
+            weights: path.clone(),
+            step: None,
+            context_views: context_views[i.min(context_views.len() - 1)],
+        })
+        .collect())
 }
 
 fn import_checkpoint(args: ImportArgs) -> anyhow::Result<()> {

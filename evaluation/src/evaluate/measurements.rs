@@ -4,14 +4,15 @@ use std::path::Path;
 
 use trainer_core::XFactor;
 
-use super::{Context, GRID_PAIRS, probe_sequences, reconstruct};
+use super::reconstruction::{Renderer, reconstruct, reconstruction_set};
+use super::{Baselines, Context, GRID_PAIRS};
 use crate::error::EvalError;
 use crate::figures::{save_camera_paths, save_grid};
-use crate::inference::transfer;
+use crate::inference::{probe_features, render_along};
 use crate::metrics::ReconstructionReport;
-use crate::probe::{ProbeReport, run_probe};
+use crate::probe::{ProbeReport, ProbeSequence, no_motion, run_probe};
 use crate::sequences::SequenceReport;
-use crate::tps::{TpsPair, TpsReport, draw_pairs, target_frames, transferability};
+use crate::tps::{TpsPair, TpsReport, TpsSettings, draw_pairs, target_frames, transferability};
 
 /// The figures written so far, by name relative to the output folder.
 pub(super) struct Figures<'a> {
@@ -34,22 +35,21 @@ impl Figures<'_> {
     }
 }
 
-/// Autoencoding of the first generated sequences, with its render-grid figure.
+/// Autoencoding of sequences from every generated scene with `context_views` context views,
+/// with its render-grid figure.
 pub(super) fn generated_reconstruction(
     model: &XFactor,
+    context_views: usize,
     context: &Context<'_>,
     prefix: &str,
     figures: &mut Figures<'_>,
 ) -> Result<ReconstructionReport, EvalError> {
     let (reconstruction, grid) = {
         let _span = tracing::info_span!("reconstruction", model = prefix).entered();
-        let generated = context
-            .dataset
-            .sequences
-            .iter()
-            .take(context.spec.reconstruction_sequences)
+        let generated = reconstruction_set(&context.dataset, context.spec.reconstruction_sequences)
+            .into_iter()
             .map(|s| s.frames.as_slice());
-        reconstruct(model, generated, context)?
+        reconstruct(Renderer::Model(model), generated, context_views, context)?
     };
     figures.save(format!("{prefix}_reconstruction.png"), &|p| {
         Ok(save_grid(&grid, p)?)
@@ -70,7 +70,7 @@ pub(super) fn sequence_reconstructions(
         let _span =
             tracing::info_span!("sequences", model = prefix, dataset = ?protocol.kind).entered();
         let frames = set.sequences.iter().map(|s| s.frames.as_slice());
-        let (reconstruction, grid) = reconstruct(model, frames, context)?;
+        let (reconstruction, grid) = reconstruct(Renderer::Model(model), frames, 1, context)?;
         figures.save(
             format!("{prefix}_sequences_{}.png", protocol.kind.name()),
             &|p| Ok(save_grid(&grid, p)?),
@@ -87,9 +87,19 @@ pub(super) fn sequence_reconstructions(
     Ok(sequences)
 }
 
+/// How TPS is drawn for `context_views` context views.
+fn tps_settings(context_views: usize, context: &Context<'_>) -> TpsSettings {
+    TpsSettings {
+        frames_per_pair: context.spec.tps_frames,
+        context_views,
+        seed: context.spec.seed,
+    }
+}
+
 /// Transferability over freshly drawn pairs, with the renders and first pair's paths figures.
 pub(super) fn evaluate_tps(
     model: &XFactor,
+    context_views: usize,
     context: &Context<'_>,
     prefix: &str,
     figures: &mut Figures<'_>,
@@ -103,16 +113,10 @@ pub(super) fn evaluate_tps(
         transferability(
             &context.dataset,
             &pairs,
-            spec.tps_frames,
+            tps_settings(context_views, context),
             context.oracle.as_ref(),
             |source, scene| {
-                let renders = transfer(
-                    model,
-                    source,
-                    0,
-                    std::slice::from_ref(scene),
-                    &context.device,
-                )?;
+                let renders = render_along(model, source, 0, scene, &context.device)?;
                 if grid_rows.len() < 2 * GRID_PAIRS {
                     grid_rows.push(source.to_vec());
                     grid_rows.push(renders.clone());
@@ -125,7 +129,7 @@ pub(super) fn evaluate_tps(
         Ok(save_grid(&grid_rows, p)?)
     })?;
     if let Some(pair) = pairs.first() {
-        save_tps_paths(model, context, prefix, pair, figures)?;
+        save_tps_paths(model, context_views, context, prefix, pair, figures)?;
     }
     Ok(tps)
 }
@@ -133,6 +137,7 @@ pub(super) fn evaluate_tps(
 /// The oracle's camera paths of `pair`'s source video and of its transfer, when it reads both.
 fn save_tps_paths(
     model: &XFactor,
+    context_views: usize,
     context: &Context<'_>,
     prefix: &str,
     pair: &TpsPair,
@@ -140,14 +145,8 @@ fn save_tps_paths(
 ) -> Result<(), EvalError> {
     let spec = context.spec;
     let indices = target_frames(spec.frames, spec.tps_frames);
-    let frames = crate::tps::pair_frames(&context.dataset, pair, &indices)?;
-    let renders = transfer(
-        model,
-        &frames.source,
-        0,
-        std::slice::from_ref(&frames.context),
-        &context.device,
-    )?;
+    let frames = crate::tps::pair_frames(&context.dataset, pair, &indices, context_views)?;
+    let renders = render_along(model, &frames.source, 0, &frames.contexts, &context.device)?;
     let oracle = context.oracle.as_ref();
     if let (Ok(reference), Ok(rendered)) =
         (oracle.estimate(&frames.source), oracle.estimate(&renders))
@@ -198,4 +197,85 @@ pub(super) fn evaluate_probe(
         })?;
     }
     Ok(probe)
+}
+
+/// The first scene the probe is tested on: the last `probe.test_scenes` are held out of its
+/// training.
+fn first_probe_test_scene(context: &Context<'_>) -> u64 {
+    context
+        .spec
+        .scenes
+        .saturating_sub(context.spec.probe.test_scenes)
+}
+
+/// PoseEnc's probe features of every generated sequence, split into the probe's training and
+/// test sequences.
+fn probe_sequences(
+    model: &XFactor,
+    context: &Context<'_>,
+) -> Result<(Vec<ProbeSequence>, Vec<ProbeSequence>), EvalError> {
+    let first_test_scene = first_probe_test_scene(context);
+    let (mut train, mut test) = (Vec::new(), Vec::new());
+    for sequence in &context.dataset.sequences {
+        let latents = probe_features(
+            model,
+            &sequence.frames[0],
+            &sequence.frames,
+            &context.device,
+        )?;
+        let item = ProbeSequence {
+            latents,
+            poses: sequence.poses.clone(),
+        };
+        if sequence.scene < first_test_scene {
+            train.push(item);
+        } else {
+            test.push(item);
+        }
+    }
+    Ok((train, test))
+}
+
+/// The pose-free baselines with `context_views` context views, on the frames and pairs the
+/// models are scored on.
+pub(super) fn baselines(
+    context_views: usize,
+    context: &Context<'_>,
+) -> Result<Baselines, EvalError> {
+    let _span = tracing::info_span!("baselines", context_views).entered();
+    let spec = context.spec;
+    let sequences = || {
+        reconstruction_set(&context.dataset, spec.reconstruction_sequences)
+            .into_iter()
+            .map(|s| s.frames.as_slice())
+    };
+    let (copy, _) = reconstruct(
+        Renderer::CopyNearestContext,
+        sequences(),
+        context_views,
+        context,
+    )?;
+    let (mean_colour, _) = reconstruct(Renderer::MeanColour, sequences(), context_views, context)?;
+    let pairs = draw_pairs(spec.seed, spec.scenes, spec.trajectories, spec.tps_pairs)?;
+    let still = transferability(
+        &context.dataset,
+        &pairs,
+        tps_settings(context_views, context),
+        context.oracle.as_ref(),
+        |source, scene| Ok(vec![scene[0].clone(); source.len()]),
+    )?;
+    let first_test_scene = first_probe_test_scene(context);
+    let held_out: Vec<_> = context
+        .dataset
+        .sequences
+        .iter()
+        .filter(|s| s.scene >= first_test_scene)
+        .map(|s| s.poses.clone())
+        .collect();
+    Ok(Baselines {
+        copy,
+        mean_colour,
+        tps_no_motion: still.model,
+        probe_no_motion: no_motion(&held_out, spec.seed),
+    })
 }

@@ -1,13 +1,16 @@
-//! The `evaluate` stage: reconstruction (autoencoding), TPS and the pose probe of one checkpoint
-//! on generated scenes, reconstruction of real test sequences under E-RayZer's protocol when
-//! asked for, next to the same numbers for an untrained model of the same shape,
-//! written as `report.json`, `report.md` and PNG figures.
+//! The `evaluate` stage: each checkpoint of a job (stage 1's and stage 2's final weights, each
+//! with the context views its stage trained with) scored on held-out generated scenes by
+//! reconstruction (autoencoding), TPS and the pose probe, beside baselines that know no pose
+//! (copy the context view, its mean colour, no camera motion) and an untrained model, computed
+//! on the same frames and pairs; every figure with its bootstrap spread. Real test sequences are
+//! reconstructed under E-RayZer's protocol when asked for. Written as `report.json`,
+//! `report.md` and PNG figures.
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-use burn::tensor::{Device, Tensor, TensorData};
-use data::Image;
+use burn::tensor::Device;
+use data::Split;
 use data::scenes::SceneConfig;
 use data::synthetic::SyntheticDataset;
 use serde::{Deserialize, Serialize};
@@ -15,23 +18,40 @@ use trainer_core::lpips::Lpips;
 use trainer_core::{XFactor, XFactorConfig, checkpoint};
 
 use crate::error::{EvalError, io_error};
-use crate::inference::{pose_latents, probe_features, render_targets};
-use crate::metrics::{CameraMetrics, ReconstructionReport, psnr, ssim};
+use crate::metrics::{CameraMetrics, ReconstructionReport};
 use crate::oracle::{
     ClassicalOracle, ClassicalSettings, ExternalOracle, GroundTruthOracle, PoseOracle,
 };
-use crate::probe::{ProbeReport, ProbeSequence};
+use crate::probe::ProbeReport;
 use crate::sequences::{ProtocolSet, SequenceReport, load_protocol};
 use crate::tps::TpsReport;
 use measurements::{
-    Figures, evaluate_probe, evaluate_tps, generated_reconstruction, sequence_reconstructions,
+    Figures, baselines, evaluate_probe, evaluate_tps, generated_reconstruction,
+    sequence_reconstructions,
 };
 use settings::evaluation::{EvaluationSpec, OracleSpec};
 
+mod markdown;
 mod measurements;
+mod reconstruction;
+
+pub use markdown::markdown;
 
 /// Pairs drawn in the render-grid figure.
 const GRID_PAIRS: usize = 3;
+
+/// One checkpoint to score, as its stage trained it.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct CheckpointUnderTest {
+    /// What it is (`stage1`, `stage2`, `checkpoint`): names its rows and figures.
+    pub label: String,
+    /// Its weights (the `.json` configuration beside them).
+    pub weights: PathBuf,
+    /// The step it was committed at, when known.
+    pub step: Option<u64>,
+    /// Context views it renders from (stage 1: 1; stage 2: its views less the target).
+    pub context_views: usize,
+}
 
 /// Every number for one model.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
@@ -47,23 +67,82 @@ pub struct ModelReport {
     pub sequences: Vec<SequenceReport>,
 }
 
+/// What scores without reading any pose, on the same frames and pairs as the models.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct Baselines {
+    /// Every target rendered as the context view nearest to it.
+    pub copy: ReconstructionReport,
+    /// Every target one flat image of the context views' mean colour.
+    pub mean_colour: ReconstructionReport,
+    /// Every transfer's renders all B's context view: a camera that never moves.
+    pub tps_no_motion: CameraMetrics,
+    /// The probe predicting the reference pose for every frame.
+    pub probe_no_motion: CameraMetrics,
+}
+
+impl Baselines {
+    /// The better reconstruction baseline by PSNR, with its name.
+    pub fn best_reconstruction(&self) -> (&'static str, &ReconstructionReport) {
+        if self.mean_colour.psnr > self.copy.psnr {
+            ("mean_colour", &self.mean_colour)
+        } else {
+            ("copy", &self.copy)
+        }
+    }
+}
+
+/// One checkpoint's scores beside its baselines.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct StageReport {
+    /// The checkpoint.
+    pub checkpoint: CheckpointUnderTest,
+    /// Its numbers.
+    pub trained: ModelReport,
+    /// An untrained model's numbers with the same context views, when asked for.
+    pub untrained: Option<ModelReport>,
+    /// The pose-free baselines.
+    pub baselines: Baselines,
+}
+
+/// The scenes every figure is measured on.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
+pub struct EvaluationScenes {
+    /// `test`: generated from the held-out draws no training job generates.
+    pub split: String,
+    /// Scenes.
+    pub scenes: u64,
+    /// Camera paths, each rendered in every scene.
+    pub trajectories: u64,
+    /// Frames per path.
+    pub frames: usize,
+    /// Seed of the draws.
+    pub seed: u64,
+}
+
 /// The whole evaluation, as written to `report.json`.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct EvaluationReport {
-    /// Checkpoint evaluated.
-    pub checkpoint: PathBuf,
     /// The spec it ran with.
     pub spec: EvaluationSpec,
+    /// The scenes it ran on.
+    pub scenes: EvaluationScenes,
     /// The model's configuration.
     pub model: XFactorConfig,
-    /// The checkpoint's numbers.
-    pub trained: ModelReport,
-    /// An untrained model's numbers, when asked for.
-    pub untrained: Option<ModelReport>,
+    /// One entry per checkpoint, in the order given (stage 1, then stage 2).
+    pub stages: Vec<StageReport>,
+    /// Every evaluation setting that departs from the release's or the paper's.
+    pub departures: Vec<String>,
     /// Figures written beside the report, relative to it.
     pub figures: Vec<String>,
     /// Wall time of the evaluation.
     pub seconds: f64,
+}
+
+impl EvaluationReport {
+    /// The last checkpoint's scores: the job's final model.
+    pub fn last(&self) -> Option<&StageReport> {
+        self.stages.last()
+    }
 }
 
 fn oracle_for(
@@ -81,7 +160,7 @@ fn oracle_for(
     }
 }
 
-/// Everything shared by the trained and untrained runs.
+/// Everything shared by the checkpoints and models of one evaluation.
 struct Context<'a> {
     spec: &'a EvaluationSpec,
     dataset: SyntheticDataset,
@@ -92,97 +171,10 @@ struct Context<'a> {
     out_dir: &'a Path,
 }
 
-/// Renders every frame of each sequence after the first from the first, with the poses PoseEnc
-/// reads from the sequence itself.
-fn reconstruct<'s>(
-    model: &XFactor,
-    sequences: impl Iterator<Item = &'s [Image]>,
-    context: &Context<'_>,
-) -> Result<(ReconstructionReport, Vec<Vec<Image>>), EvalError> {
-    let (mut psnrs, mut ssims, mut lpipses) = (Vec::new(), Vec::new(), Vec::new());
-    let mut grid = Vec::new();
-    for frames in sequences {
-        let first = &frames[0];
-        let targets = &frames[1..];
-        let latents = pose_latents(model, first, targets, &context.device)?;
-        let zero = vec![0.0; latents.first().map_or(0, Vec::len)];
-        let renders = render_targets(
-            model,
-            std::slice::from_ref(first),
-            &[zero],
-            &latents,
-            &context.device,
-        )?;
-        for (render, target) in renders.iter().zip(targets) {
-            psnrs.push(psnr(render, target)?);
-            ssims.push(ssim(render, target)?);
-        }
-        if let Some(lpips) = &context.lpips {
-            let upload = |images: &[Image]| {
-                let values: Vec<f32> = images
-                    .iter()
-                    .flat_map(|i| i.pixels.iter().copied())
-                    .collect();
-                Tensor::<4>::from_data(
-                    TensorData::new(values, [images.len(), first.height, first.width, 3]),
-                    &context.device,
-                )
-            };
-            let distances = lpips
-                .distance(upload(&renders), upload(targets))
-                .try_into_vec_as::<f32>()
-                .map_err(|e| EvalError::Tensor(format!("{e:?}")))?;
-            lpipses.extend(distances.iter().map(|&d| f64::from(d)));
-        }
-        if grid.len() < 2 * GRID_PAIRS {
-            grid.push(frames.to_vec());
-            grid.push([vec![first.clone()], renders].concat());
-        }
-    }
-    let mean = |v: &[f64]| v.iter().sum::<f64>() / v.len().max(1) as f64;
-    Ok((
-        ReconstructionReport {
-            frames: psnrs.len(),
-            psnr: mean(&psnrs),
-            ssim: mean(&ssims),
-            lpips: (!lpipses.is_empty()).then(|| mean(&lpipses)),
-        },
-        grid,
-    ))
-}
-
-fn probe_sequences(
-    model: &XFactor,
-    context: &Context<'_>,
-) -> Result<(Vec<ProbeSequence>, Vec<ProbeSequence>), EvalError> {
-    let first_test_scene = context
-        .spec
-        .scenes
-        .saturating_sub(context.spec.probe.test_scenes);
-    let (mut train, mut test) = (Vec::new(), Vec::new());
-    for sequence in &context.dataset.sequences {
-        let latents = probe_features(
-            model,
-            &sequence.frames[0],
-            &sequence.frames,
-            &context.device,
-        )?;
-        let item = ProbeSequence {
-            latents,
-            poses: sequence.poses.clone(),
-        };
-        if sequence.scene < first_test_scene {
-            train.push(item);
-        } else {
-            test.push(item);
-        }
-    }
-    Ok((train, test))
-}
-
-/// Evaluates one model, writing its figures with `prefix`.
+/// Scores one model with `context_views` context views, writing its figures with `prefix`.
 fn evaluate_model(
     model: &XFactor,
+    context_views: usize,
     context: &Context<'_>,
     prefix: &str,
     figures: &mut Vec<String>,
@@ -191,9 +183,10 @@ fn evaluate_model(
         out_dir: context.out_dir,
         names: figures,
     };
-    let reconstruction = generated_reconstruction(model, context, prefix, &mut figures)?;
+    let reconstruction =
+        generated_reconstruction(model, context_views, context, prefix, &mut figures)?;
     let sequences = sequence_reconstructions(model, context, prefix, &mut figures)?;
-    let tps = evaluate_tps(model, context, prefix, &mut figures)?;
+    let tps = evaluate_tps(model, context_views, context, prefix, &mut figures)?;
     let probe = evaluate_probe(model, context, prefix, &mut figures)?;
     Ok(ModelReport {
         reconstruction,
@@ -203,40 +196,81 @@ fn evaluate_model(
     })
 }
 
-/// Evaluates the checkpoint `weights` (its `.json` configuration beside it) on `device` and
-/// writes `report.json`, `report.md` and the figures into `out_dir` (created if needed).
+/// Scores one checkpoint, its untrained twin when the spec asks, and the baselines.
+fn evaluate_checkpoint(
+    under_test: &CheckpointUnderTest,
+    context: &Context<'_>,
+    figures: &mut Vec<String>,
+) -> Result<(StageReport, XFactorConfig), EvalError> {
+    let _span = tracing::info_span!("checkpoint", label = %under_test.label).entered();
+    let (model, config) = checkpoint::load(&under_test.weights, &context.device)?;
+    let views = under_test.context_views.max(1);
+    let label = &under_test.label;
+    let trained = evaluate_model(&model, views, context, &format!("{label}_trained"), figures)?;
+    let untrained = if context.spec.compare_untrained {
+        let fresh = XFactor::new(&config, context.spec.seed, &context.device)
+            .map_err(|e| EvalError::Invalid(e.to_string()))?;
+        let prefix = format!("{label}_untrained");
+        Some(evaluate_model(&fresh, views, context, &prefix, figures)?)
+    } else {
+        None
+    };
+    let report = StageReport {
+        checkpoint: under_test.clone(),
+        trained,
+        untrained,
+        baselines: baselines(views, context)?,
+    };
+    Ok((report, config))
+}
+
+/// Scores every checkpoint of `checkpoints` (each with its `.json` configuration beside it; all
+/// of one image size) on `device` and writes `report.json`, `report.md` and the figures into
+/// `out_dir` (created if needed).
 pub fn run_evaluation(
     spec: &EvaluationSpec,
-    weights: &Path,
+    checkpoints: &[CheckpointUnderTest],
     out_dir: &Path,
     device: &Device,
 ) -> Result<EvaluationReport, EvalError> {
     let started = Instant::now();
-    let _span = tracing::info_span!("evaluate", checkpoint = %weights.display()).entered();
+    let _span = tracing::info_span!("evaluate", checkpoints = checkpoints.len()).entered();
     spec.validate()?;
+    let first = checkpoints
+        .first()
+        .ok_or_else(|| EvalError::Invalid("no checkpoint to evaluate".to_string()))?;
     std::fs::create_dir_all(out_dir).map_err(|e| io_error(out_dir, e))?;
-    let (model, config) = checkpoint::load(weights, device)?;
+    let (_, config) = checkpoint::load(&first.weights, device)?;
     let context = build_context(spec, &config, device, out_dir)?;
     let mut figures = Vec::new();
-    let trained = evaluate_model(&model, &context, "trained", &mut figures)?;
-    let untrained = if spec.compare_untrained {
-        let baseline = XFactor::new(&config, spec.seed, device)
-            .map_err(|e| EvalError::Invalid(e.to_string()))?;
-        Some(evaluate_model(
-            &baseline,
-            &context,
-            "untrained",
-            &mut figures,
-        )?)
-    } else {
-        None
-    };
+    let mut stages = Vec::with_capacity(checkpoints.len());
+    let mut model = config;
+    for under_test in checkpoints {
+        let (stage, config) = evaluate_checkpoint(under_test, &context, &mut figures)?;
+        if config.image_size != model.image_size {
+            return Err(EvalError::Invalid(format!(
+                "{} is a {}-pixel model, {} a {}-pixel one: one evaluation scores one image size",
+                under_test.weights.display(),
+                config.image_size,
+                first.weights.display(),
+                model.image_size
+            )));
+        }
+        stages.push(stage);
+        model = config;
+    }
     let report = EvaluationReport {
-        checkpoint: weights.to_path_buf(),
         spec: spec.clone(),
-        model: config,
-        trained,
-        untrained,
+        scenes: EvaluationScenes {
+            split: "test".to_string(),
+            scenes: spec.scenes,
+            trajectories: spec.trajectories,
+            frames: spec.frames,
+            seed: spec.seed,
+        },
+        model,
+        stages,
+        departures: departures(spec),
         figures,
         seconds: started.elapsed().as_secs_f64(),
     };
@@ -245,7 +279,33 @@ pub fn run_evaluation(
     Ok(report)
 }
 
-/// Generates the scenes and loads the real sequences, pose oracle and LPIPS both models share.
+/// The spec's settings that differ from the release's evaluation or the paper's, in words, then
+/// the job's own notes on its training.
+fn departures(spec: &EvaluationSpec) -> Vec<String> {
+    let mut notes = vec![
+        "generated held-out scenes (test split), not a dataset's test split".to_string(),
+        format!("oracle {:?}", spec.oracle),
+    ];
+    if spec.probe.rotation_from_identity {
+        notes.push(
+            "probe.rotation_from_identity: the probe's matrix starts at the identity (the release's starts at zero)"
+                .to_string(),
+        );
+    }
+    if spec.probe.steps != 10_000 || spec.probe.batch != 64 {
+        notes.push(format!(
+            "probe: {} steps of {} (the paper: 10000 of 64)",
+            spec.probe.steps, spec.probe.batch
+        ));
+    }
+    if spec.tps_frames != 5 {
+        notes.push(format!("tps_frames: {} (the paper: 5)", spec.tps_frames));
+    }
+    notes
+}
+
+/// Generates the held-out scenes and loads the real sequences, pose oracle and LPIPS every
+/// checkpoint shares.
 fn build_context<'a>(
     spec: &'a EvaluationSpec,
     config: &XFactorConfig,
@@ -263,8 +323,9 @@ fn build_context<'a>(
             trajectories = spec.trajectories
         )
         .entered();
-        SyntheticDataset::generate(
+        SyntheticDataset::generate_split(
             spec.seed,
+            Split::Test,
             spec.scenes,
             spec.trajectories,
             spec.frames,
@@ -307,96 +368,6 @@ fn write_report(report: &EvaluationReport, out_dir: &Path) -> Result<(), EvalErr
     Ok(())
 }
 
-fn camera_cells(metrics: &CameraMetrics) -> String {
-    let at =
-        |t: u32, f: fn(&crate::metrics::ThresholdScores) -> f64| metrics.at(t).map_or(f64::NAN, f);
-    let optional = |v: Option<f64>| v.map_or_else(|| "-".to_string(), |v| format!("{v:.3}"));
-    format!(
-        "{:.3} | {:.3} | {:.3} | {:.3} | {:.3} | {:.3} | {} | {}",
-        at(5, |s| s.rotation_accuracy),
-        at(5, |s| s.translation_accuracy),
-        at(20, |s| s.rotation_auc),
-        at(20, |s| s.translation_auc),
-        at(20, |s| s.auc),
-        at(30, |s| s.auc),
-        optional(metrics.trajectory_error_scale_invariant),
-        optional(metrics.trajectory_error_unscaled),
-    )
-}
-
-/// The report as Markdown tables: the headline numbers of each model, then the oracle's
-/// calibration.
-pub fn markdown(report: &EvaluationReport) -> String {
-    let mut rows = vec![("trained", &report.trained)];
-    if let Some(untrained) = &report.untrained {
-        rows.push(("untrained", untrained));
-    }
-    let mut text = format!(
-        "# XFactor evaluation\n\nCheckpoint `{}`; {} scenes x {} trajectories x {} frames (seed {}); oracle `{}`; {:.1} s.\n\n",
-        report.checkpoint.display(),
-        report.spec.scenes,
-        report.spec.trajectories,
-        report.spec.frames,
-        report.spec.seed,
-        report.trained.tps.oracle,
-        report.seconds
-    );
-    text.push_str("## Reconstruction (autoencoding)\n\n| model | frames | PSNR | SSIM | LPIPS |\n| --- | --- | --- | --- | --- |\n");
-    for (name, r) in &rows {
-        let c = &r.reconstruction;
-        let lpips = c.lpips.map_or("-".to_string(), |v| format!("{v:.4}"));
-        text.push_str(&format!(
-            "| {name} | {} | {:.2} | {:.4} | {lpips} |\n",
-            c.frames, c.psnr, c.ssim
-        ));
-    }
-    text.push_str("\n## Transferability (TPS) and pose probe\n\n| model | measure | Rac@5 | Tac@5 | Rot_Auc@20 | Trans_Auc@20 | SE3_Auc@20 | SE3_Auc@30 | traj err (scale-inv.) | traj err (unscaled) |\n| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |\n");
-    for (name, r) in &rows {
-        text.push_str(&format!(
-            "| {name} | TPS | {} |\n",
-            camera_cells(&r.tps.model)
-        ));
-        text.push_str(&format!(
-            "| {name} | probe | {} |\n",
-            camera_cells(&r.probe.metrics)
-        ));
-    }
-    if !report.trained.sequences.is_empty() {
-        text.push_str("\n## Real test sequences (E-RayZer's protocol: fixed length, equally spaced frames, first and last included)\n\n| model | dataset | length | sequences | skipped (short) | frames | PSNR | SSIM | LPIPS |\n| --- | --- | --- | --- | --- | --- | --- | --- | --- |\n");
-        for (name, r) in &rows {
-            for set in &r.sequences {
-                let c = &set.reconstruction;
-                let lpips = c.lpips.map_or("-".to_string(), |v| format!("{v:.4}"));
-                text.push_str(&format!(
-                    "| {name} | {} | {} | {} | {} | {} | {:.2} | {:.4} | {lpips} |\n",
-                    set.kind.name(),
-                    set.length,
-                    set.sequences,
-                    set.skipped_short,
-                    c.frames,
-                    c.psnr,
-                    c.ssim
-                ));
-            }
-        }
-    }
-    let tps = &report.trained.tps;
-    text.push_str(&format!(
-        "\n## Oracle calibration\n\n{} pairs x {} frames ({} skipped, {} unreadable renders).\n\n| transfer | Rac@5 | Tac@5 | Rot_Auc@20 | Trans_Auc@20 | SE3_Auc@20 | SE3_Auc@30 | traj err (scale-inv.) | traj err (unscaled) |\n| --- | --- | --- | --- | --- | --- | --- | --- | --- |\n| ideal (true rendering) | {} |\n| unrelated trajectory | {} |\n",
-        tps.pairs,
-        tps.frames_per_pair,
-        tps.skipped,
-        tps.failures,
-        camera_cells(&tps.ideal_transfer),
-        camera_cells(&tps.unrelated_trajectory)
-    ));
-    text.push_str("\n## Figures\n\n");
-    for figure in &report.figures {
-        text.push_str(&format!("![{figure}]({figure})\n"));
-    }
-    text
-}
-
 /// The spec in `path` (JSON), or the default when `path` is `None`.
 pub fn read_spec(path: Option<&Path>) -> Result<EvaluationSpec, EvalError> {
     match path {
@@ -430,5 +401,10 @@ mod tests {
             serde_json::from_str(&serde_json::to_string(&spec).unwrap()).unwrap();
         assert_eq!(back, spec);
         assert!(serde_json::from_str::<EvaluationSpec>(r#"{"scene": 4}"#).is_err());
+        let notes = departures(&spec);
+        assert!(
+            notes.iter().any(|n| n.contains("probe: 10 steps")),
+            "{notes:?}"
+        );
     }
 }

@@ -7,6 +7,8 @@
 use data::scenes::CameraPose;
 use serde::{Deserialize, Serialize};
 
+use super::spread::{CameraSpread, camera_spread};
+
 use super::auc::{auc, normalized_histogram};
 use super::trajectory::TrajectoryError;
 use crate::geometry::{rotation, rotation_angle_degrees, translation};
@@ -97,6 +99,10 @@ pub struct CameraMetrics {
     /// Mean unscaled trajectory error of camera centres (`traj_err_unscaled`).
     #[serde(default)]
     pub trajectory_error_unscaled: Option<f64>,
+    /// Bootstrap spreads of the AUCs over the independent units the errors came from, when
+    /// those were given ([`CameraMetrics::with_spread`]).
+    #[serde(default)]
+    pub spread: Option<CameraSpread>,
 }
 
 impl CameraMetrics {
@@ -144,6 +150,17 @@ impl CameraMetrics {
             thresholds,
             trajectory_error_scale_invariant: None,
             trajectory_error_unscaled: None,
+            spread: None,
+        }
+    }
+
+    /// The metrics of every error of `groups` (one group per independent unit: a transfer, a
+    /// held-out sequence) with the spreads of their AUCs over those units.
+    pub fn from_groups(groups: &[Vec<PairError>], seed: u64) -> Self {
+        let errors: Vec<PairError> = groups.iter().flatten().copied().collect();
+        Self {
+            spread: Some(camera_spread(groups, seed)),
+            ..Self::from_errors(&errors)
         }
     }
 

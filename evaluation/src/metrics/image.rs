@@ -28,6 +28,12 @@ pub struct ReconstructionReport {
     pub ssim: f64,
     /// Mean LPIPS, when weights were given.
     pub lpips: Option<f64>,
+    /// Bootstrap spread of the mean PSNR over the frames.
+    #[serde(default)]
+    pub psnr_spread: f64,
+    /// Bootstrap spread of the mean SSIM over the frames.
+    #[serde(default)]
+    pub ssim_spread: f64,
 }
 
 /// Why two images cannot be compared.

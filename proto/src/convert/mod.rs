@@ -492,6 +492,7 @@ impl From<&EvaluationSpec> for v1::EvaluationSettings {
                     count: p.count as u64,
                 })
                 .collect(),
+            notes: e.notes.clone(),
         }
     }
 }
@@ -550,6 +551,7 @@ impl TryFrom<&v1::EvaluationSettings> for EvaluationSpec {
                     })
                 })
                 .collect::<Result<_, ConvertError>>()?,
+            notes: e.notes.clone(),
         })
     }
 }

@@ -123,6 +123,7 @@ fn evaluation_settings_phases_and_devices_survive_the_wire() {
             length: 12,
             count: 20,
         }],
+        notes: vec!["stage 2 keeps stage 1's Render".into()],
         ..EvaluationSpec::default()
     };
     let back = EvaluationSpec::try_from(&v1::EvaluationSettings::from(&evaluation)).unwrap();

@@ -7,12 +7,12 @@ use settings::data::DataSpec;
 use settings::evaluation::EvaluationSpec;
 use settings::train::TrainConfig;
 use settings::work::{
-    Assignment, EvaluateWork, FailureCause, GenerationFailure, RingSecrets, TrainStart, TrainWork,
-    Work,
+    Assignment, CheckpointToEvaluate, EvaluateWork, FailureCause, GenerationFailure, RingSecrets,
+    TrainStart, TrainWork, Work,
 };
 use settings::{DeviceSet, Phase};
 
-use super::{ConvertError, device_from_wire, device_to_wire, phase_from_wire, phase_to_wire};
+use super::{ConvertError, device_from_wire, device_to_wire, phase_from_wire, phase_to_wire, size};
 use crate::v1;
 
 /// An empty string is the wire's "none".
@@ -224,8 +224,15 @@ impl TryFrom<&v1::EvaluateAssignment> for EvaluateWork {
     type Error = ConvertError;
 
     fn try_from(wire: &v1::EvaluateAssignment) -> Result<Self, ConvertError> {
+        if wire.checkpoints.is_empty() {
+            return Err(ConvertError::Missing("evaluate.checkpoints"));
+        }
         Ok(Self {
-            weights: non_empty(&wire.weights).ok_or(ConvertError::Missing("evaluate.weights"))?,
+            checkpoints: wire
+                .checkpoints
+                .iter()
+                .map(CheckpointToEvaluate::try_from)
+                .collect::<Result<_, _>>()?,
             report_prefix: non_empty(&wire.report_prefix)
                 .ok_or(ConvertError::Missing("evaluate.report_prefix"))?,
             device: device_from_wire(wire.device, "evaluate.device")?,
@@ -246,11 +253,39 @@ impl TryFrom<&v1::EvaluateAssignment> for EvaluateWork {
 impl From<&EvaluateWork> for v1::EvaluateAssignment {
     fn from(work: &EvaluateWork) -> Self {
         Self {
-            weights: work.weights.clone(),
+            checkpoints: work.checkpoints.iter().map(Into::into).collect(),
             report_prefix: work.report_prefix.clone(),
             device: device_to_wire(work.device) as i32,
             model: Some((&work.model).into()),
             spec: Some((&work.spec).into()),
+        }
+    }
+}
+
+impl TryFrom<&v1::CheckpointToEvaluate> for CheckpointToEvaluate {
+    type Error = ConvertError;
+
+    fn try_from(wire: &v1::CheckpointToEvaluate) -> Result<Self, ConvertError> {
+        Ok(Self {
+            stage: phase_from_wire(wire.stage, "evaluate.checkpoints.stage")?,
+            weights: non_empty(&wire.weights)
+                .ok_or(ConvertError::Missing("evaluate.checkpoints.weights"))?,
+            step: wire.step,
+            context_views: size(positive(
+                wire.context_views,
+                "evaluate.checkpoints.context_views",
+            )?),
+        })
+    }
+}
+
+impl From<&CheckpointToEvaluate> for v1::CheckpointToEvaluate {
+    fn from(checkpoint: &CheckpointToEvaluate) -> Self {
+        Self {
+            stage: phase_to_wire(checkpoint.stage) as i32,
+            weights: checkpoint.weights.clone(),
+            step: checkpoint.step,
+            context_views: checkpoint.context_views as u64,
         }
     }
 }

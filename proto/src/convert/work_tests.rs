@@ -7,8 +7,8 @@ use settings::objective::Stage2Config;
 use settings::optim::{AdamWConfig, Schedule};
 use settings::train::{StageObjective, TrainConfig};
 use settings::work::{
-    Assignment, EvaluateWork, FailureCause, GenerationFailure, RingSecrets, TrainStart, TrainWork,
-    Work,
+    Assignment, CheckpointToEvaluate, EvaluateWork, FailureCause, GenerationFailure, RingSecrets,
+    TrainStart, TrainWork, Work,
 };
 use settings::{DeviceChoice, DeviceSet, Phase, XFactorConfig};
 
@@ -85,7 +85,10 @@ pub(super) fn every_kind_of_work() -> Vec<Work> {
             ..train_work(TrainStart::Fresh, None)
         })),
         Work::Evaluate(Box::new(EvaluateWork {
-            weights: "s3://bucket/job/stage2/final".into(),
+            checkpoints: vec![
+                checkpoint(Phase::Stage1, "s3://bucket/job/stage1/final", 1),
+                checkpoint(Phase::Stage2, "s3://bucket/job/stage2/final", 2),
+            ],
             report_prefix: "s3://bucket/job/evaluation".into(),
             device: DeviceChoice::Cpu,
             model: XFactorConfig::tiny(16),
@@ -184,17 +187,30 @@ fn malformed_train_assignments_are_refused_with_the_field() {
     );
 }
 
+fn checkpoint(stage: Phase, weights: &str, context_views: usize) -> CheckpointToEvaluate {
+    CheckpointToEvaluate {
+        stage,
+        weights: weights.into(),
+        step: 40,
+        context_views,
+    }
+}
+
 #[test]
 fn missing_parts_of_an_evaluate_assignment_are_named() {
     let whole = v1::EvaluateAssignment::from(&EvaluateWork {
-        weights: "w".into(),
+        checkpoints: vec![checkpoint(Phase::Stage2, "w", 2)],
         report_prefix: "r".into(),
         device: DeviceChoice::Auto,
         model: XFactorConfig::tiny(16),
         spec: EvaluationSpec::default(),
     });
-    let cases: [Breakage<v1::EvaluateAssignment>; 4] = [
-        (|w| w.weights.clear(), "evaluate.weights"),
+    let cases: [Breakage<v1::EvaluateAssignment>; 5] = [
+        (|w| w.checkpoints.clear(), "evaluate.checkpoints"),
+        (
+            |w| w.checkpoints[0].weights.clear(),
+            "evaluate.checkpoints.weights",
+        ),
         (|w| w.report_prefix.clear(), "evaluate.report_prefix"),
         (|w| w.model = None, "evaluate.model"),
         (|w| w.spec = None, "evaluate.spec"),
@@ -207,6 +223,15 @@ fn missing_parts_of_an_evaluate_assignment_are_named() {
             Err(ConvertError::Missing(field))
         );
     }
+    let mut no_views = whole.clone();
+    no_views.checkpoints[0].context_views = 0;
+    assert!(matches!(
+        EvaluateWork::try_from(&no_views),
+        Err(ConvertError::Malformed {
+            field: "evaluate.checkpoints.context_views",
+            ..
+        })
+    ));
 }
 
 #[test]

@@ -42,7 +42,12 @@ fn a_job_goes_through_stage1_stage2_evaluation_and_finishes() {
     let evaluated: Vec<_> = third.iter().filter(|a| a.is_some()).collect();
     assert_eq!(evaluated.len(), 1, "one worker evaluates");
     let evaluate = evaluation(evaluated[0]);
-    assert_eq!(evaluate.weights, "mem://stage2/2");
+    let scored: Vec<(&str, u64)> = evaluate
+        .checkpoints
+        .iter()
+        .map(|c| (c.weights.as_str(), c.context_views))
+        .collect();
+    assert_eq!(scored, [("mem://stage1/4", 1), ("mem://stage2/2", 5)]);
     assert_eq!(evaluate.report_prefix, "/tmp/unit-ckpt/evaluation");
     let generation = evaluated[0].as_ref().unwrap().generation;
     let evaluator = run.workers[third.iter().position(|a| a.is_some()).unwrap()];
