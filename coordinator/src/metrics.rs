@@ -1,7 +1,9 @@
 //! The coordinator's Prometheus series: job progress, what the workers report each step, and
 //! membership events. Scraped from `/metrics` (see the `telemetry` crate).
 
-use proto::v1::{JobStatus, StepReport};
+use proto::v1::StepReport;
+
+use crate::job::JobStatus;
 use settings::Phase;
 pub use telemetry::training::{GENERATION, GRAD_NORM, LEARNING_RATE, LOSS, STAGE, STEP};
 use telemetry::{Metric, Registry};
@@ -82,7 +84,7 @@ pub fn record_status(
     registry.set(&STAGE, &[], f64::from(phase.number()));
     registry.set(&STEP, &[], status.step as f64);
     registry.set(&STAGE_STEPS, &[], status.total_steps as f64);
-    registry.set(&WORKERS, &[], f64::from(status.workers));
+    registry.set(&WORKERS, &[], status.workers as f64);
     registry.set(&GENERATION, &[], status.generation as f64);
     registry.raise_to(&RESTARTS, &[], status.restarts as f64);
     registry.raise_to(&CHECKSUM_MISMATCHES, &[], mismatches as f64);

@@ -315,6 +315,47 @@ fn metrics_are_scraped_from_the_coordinator_and_both_workers_mid_run() {
     }
 }
 
+/// Grace a worker gets after SIGTERM in the test below.
+const GRACE_S: u64 = 3;
+
+/// A worker frozen mid-stage (SIGSTOP) while its peer waits on it in the all-reduce, then
+/// thawed (SIGCONT) and sent one SIGTERM, leaves the job and exits 0 within its grace period
+/// (plus the 5 s its farewell may wait for the coordinator); the job finishes without it.
+#[test]
+fn one_sigterm_ends_a_worker_stopped_mid_step_within_its_grace() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut job = small_job(dir.path(), 2);
+    job.stage1_steps = 400;
+    job.checkpoint_every = 100;
+    job.worker_args = vec![
+        Vec::new(),
+        vec!["--shutdown-grace-s".into(), GRACE_S.to_string()],
+    ];
+    let mut running = Running::start(job);
+    wait_for_first_commit(&running);
+    signal(&running.workers[1], "STOP");
+    std::thread::sleep(Duration::from_secs(2));
+    signal(&running.workers[1], "CONT");
+    signal(&running.workers[1], "TERM");
+    let signalled = Instant::now();
+    let status = wait_exit(&mut running.workers[1], Duration::from_secs(60));
+    let took = signalled.elapsed();
+    println!(
+        "fault=sigstop_then_sigterm exit_s={:.1} status={status}",
+        took.as_secs_f64()
+    );
+    assert!(status.success(), "{status}\n{}", running.logs());
+    assert!(
+        took < Duration::from_secs(GRACE_S + 6),
+        "one SIGTERM took {took:?}\n{}",
+        running.logs()
+    );
+    let log = std::fs::read_to_string(dir.path().join("worker-1.log")).unwrap();
+    assert!(log.contains("left the job"), "{log}");
+    let report = running.finish(Duration::from_secs(600));
+    assert_eq!(report["outcome"], "finished", "{report:#}");
+}
+
 #[test]
 fn sigterm_to_a_worker_leaves_cleanly_and_the_job_finishes() {
     let dir = tempfile::tempdir().unwrap();
@@ -363,6 +404,7 @@ fn a_coordinator_stopped_by_sigterm_and_restarted_resumes_and_finishes() {
     let resume_point = last_committed(&running.job.checkpoint_dir());
     load_weights(&resume_point);
     running.coordinator = running.job.spawn_coordinator(&binaries()).unwrap();
+    let running_dir = running.job.dir.clone();
     let report = running.finish(Duration::from_secs(300));
     assert_eq!(report["outcome"], "finished", "{report:#}");
     let first = &report["generations"][0];
@@ -373,4 +415,15 @@ fn a_coordinator_stopped_by_sigterm_and_restarted_resumes_and_finishes() {
     let final_stage2 = commits(&report, 2);
     assert_eq!(final_stage2.last().unwrap().0, 3, "{report:#}");
     load_weights(&final_stage2.last().unwrap().1);
+    // The history of the run before the restart is read back: the report and the curves
+    // start at stage 1's first step.
+    let first_stage1 = report["steps"]
+        .as_array()
+        .and_then(|steps| steps.iter().find(|s| s["stage"] == 1))
+        .map(|s| s["step"].clone());
+    assert_eq!(first_stage1, Some(Value::from(0)), "{report:#}");
+    let curve = std::fs::read_to_string(running_dir.join("checkpoints/curves/stage1.csv")).unwrap();
+    let rows: Vec<&str> = curve.lines().skip(1).collect();
+    assert_eq!(rows.len(), 10, "{curve}");
+    assert!(rows[0].starts_with("0,"), "{curve}");
 }

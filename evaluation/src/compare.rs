@@ -6,6 +6,7 @@
 use std::fmt::Write;
 use std::path::{Path, PathBuf};
 
+use settings::evaluation::EvaluationSpec;
 use settings::model::PoseConditioning;
 use telemetry::bars::BarChart;
 use telemetry::plot::Chart;
@@ -63,7 +64,7 @@ pub fn read_runs(paths: &[PathBuf], labels: &[String]) -> Result<Vec<ComparedRun
             return Err(io_error(&path, "the report scores no checkpoint"));
         }
         if let Some(first) = runs.first()
-            && first.report.spec != report.spec
+            && !evaluated_alike(&first.report.spec, &report.spec)
         {
             return Err(EvalError::Invalid(format!(
                 "{} was evaluated with another spec than {} (seed, scenes, pairs, probe or oracle differ); compare runs evaluated the same way",
@@ -82,6 +83,16 @@ pub fn read_runs(paths: &[PathBuf], labels: &[String]) -> Result<Vec<ComparedRun
         });
     }
     Ok(runs)
+}
+
+/// Whether two specs evaluate the same way: every setting but the jobs' notes on their
+/// training, which differ between the variants a comparison is for.
+fn evaluated_alike(a: &EvaluationSpec, b: &EvaluationSpec) -> bool {
+    let without_notes = |spec: &EvaluationSpec| EvaluationSpec {
+        notes: Vec::new(),
+        ..spec.clone()
+    };
+    without_notes(a) == without_notes(b)
 }
 
 /// The run folder's name: the parent of `report.json`, or the file's stem.
@@ -224,7 +235,6 @@ pub fn write_comparison(
 #[cfg(test)]
 mod tests {
     use settings::XFactorConfig;
-    use settings::evaluation::EvaluationSpec;
 
     use super::*;
     use crate::evaluate::{
@@ -355,6 +365,11 @@ mod tests {
     fn runs_evaluated_differently_or_a_missing_report_are_named() {
         let dir = tempfile::tempdir().unwrap();
         let first = write_run(dir.path(), "a", &report(1.0, 1.0, 8));
+        let mut noted = report(1.0, 1.0, 8);
+        noted.spec.notes = vec!["another objective".into()];
+        let alike = write_run(dir.path(), "noted", &noted);
+        read_runs(&[first.clone(), alike], &[])
+            .expect("notes on training are not evaluation settings");
         let mut other = report(1.0, 1.0, 8);
         other.spec.seed = 7;
         let second = write_run(dir.path(), "b", &other);

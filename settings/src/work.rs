@@ -148,3 +148,59 @@ pub enum FailureCause {
         location: String,
     },
 }
+
+/// What a worker is doing within its step, so the coordinator can tell stuck from slow.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub enum Activity {
+    /// Between steps, or not in a generation.
+    #[default]
+    Idle,
+    /// Loading samples and computing gradients of its step.
+    Computing,
+    /// In the all-reduce of its step, waiting for its peers.
+    Allreduce,
+    /// Writing and committing a checkpoint.
+    Committing,
+}
+
+/// The loss of one step as rank 0 saw it.
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
+pub struct StepLoss {
+    /// The loss of the global batch.
+    pub total: f32,
+    /// The learning rate of the step.
+    pub learning_rate: f64,
+    /// The global gradient norm before clipping.
+    pub grad_norm: f64,
+    /// False when the update was skipped for an exploding gradient norm.
+    pub applied: bool,
+    /// The L1 term of `total`.
+    pub l1: f32,
+    /// The LPIPS term before its weight, where the stage has one.
+    pub lpips: Option<f32>,
+}
+
+/// One rank's report of a finished step.
+#[derive(Debug, Clone, PartialEq, Default)]
+pub struct StepReport {
+    /// The generation it ran in.
+    pub generation: u64,
+    /// The step just finished (counted from 0).
+    pub step: u64,
+    /// Its loss, when the rank reports one.
+    pub loss: Option<StepLoss>,
+    /// The parameter checksum after the step, when computed.
+    pub checksum: Option<u32>,
+    /// Samples per second of this worker during the step.
+    pub samples_per_s: f64,
+    /// Seconds of the step spent in the all-reduce.
+    pub allreduce_s: f64,
+    /// Wall time of the whole step on this worker.
+    pub step_s: f64,
+    /// Seconds the step waited for its data loader.
+    pub data_wait_s: f64,
+    /// Frames skipped so far in this generation.
+    pub skipped_frames: u64,
+    /// The newest frames skipped, `dataset path: why`.
+    pub skipped_examples: Vec<String>,
+}

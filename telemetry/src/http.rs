@@ -55,6 +55,18 @@ pub async fn serve(
     registry: Arc<Registry>,
     health: HealthCheck,
 ) -> Result<SocketAddr, HttpError> {
+    let (bound, serving) = bind(address, registry, health).await?;
+    tokio::spawn(serving);
+    Ok(bound)
+}
+
+/// Binds `address` for [`serve`] and returns the bound address and the server, which serves
+/// until it is dropped: for a caller that owns its tasks and ends them itself.
+pub async fn bind(
+    address: &str,
+    registry: Arc<Registry>,
+    health: HealthCheck,
+) -> Result<(SocketAddr, impl Future<Output = ()> + Send + 'static), HttpError> {
     let bind_error = |source| HttpError::Bind {
         address: address.to_string(),
         source,
@@ -62,7 +74,7 @@ pub async fn serve(
     let listener = TcpListener::bind(address).await.map_err(bind_error)?;
     let bound = listener.local_addr().map_err(bind_error)?;
     let slots = Arc::new(tokio::sync::Semaphore::new(MAX_CONNECTIONS));
-    tokio::spawn(async move {
+    let serving = async move {
         loop {
             let Ok(slot) = Arc::clone(&slots).acquire_owned().await else {
                 return;
@@ -93,9 +105,9 @@ pub async fn serve(
                 }
             }
         }
-    });
+    };
     tracing::info!(address = %bound, "serving /metrics");
-    Ok(bound)
+    Ok((bound, serving))
 }
 
 async fn answer(

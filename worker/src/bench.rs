@@ -3,7 +3,7 @@
 
 use std::time::Duration;
 
-use tokio::sync::watch;
+use tokio_util::sync::CancellationToken;
 
 use crate::collective::{CollectiveService, Link, Ring, RingKeys, spawn_server};
 
@@ -78,7 +78,7 @@ pub fn run_rank(args: &BenchArgs) -> anyhow::Result<()> {
             tls: None,
         };
         spawn_server(listener, service, &link)?;
-        let (_cancel, cancelled) = watch::channel(false);
+        let cancelled = CancellationToken::new();
         // Every rank of the benchmark derives the same keys; the job's come from the coordinator.
         let left = (rank + peers.len() - 1) % peers.len();
         let keys = RingKeys {

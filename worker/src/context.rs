@@ -2,11 +2,10 @@
 //! generation layers (`training`, `evaluate`) take and return, owned here so that those layers
 //! and the daemon that drives them import this leaf rather than each other.
 
-use tokio_util::sync::CancellationToken;
-
 use crate::collective::{Link, Mailbox};
 use crate::options::WorkerOptions;
 use crate::progress::Progress;
+use crate::shutdown::Shutdown;
 
 /// How a generation ended for this worker.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -42,7 +41,7 @@ pub struct WorkerContext<'a> {
     /// Shared with the heartbeat task.
     pub progress: &'a Progress,
     /// Cancelled on SIGTERM.
-    pub shutdown: &'a CancellationToken,
+    pub shutdown: &'a Shutdown,
 }
 
 impl WorkerContext<'_> {

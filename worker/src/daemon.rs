@@ -12,15 +12,19 @@ use anyhow::{Context, bail};
 use settings::work::{Assignment, GenerationFailure, Work};
 use tokio::runtime::Runtime;
 
-use crate::collective::{CollectiveService, Link, spawn_server};
+use crate::collective::{CollectiveService, Link, server};
 use crate::context::{Ending, WorkerContext};
 use crate::options::{WorkerOptions, WorkerTls};
 use crate::progress::Progress;
-use crate::session::{AwaitError, Client, await_assignment, connect, heartbeats, leave, register};
+use crate::session::{
+    AwaitError, Client, await_assignment, connect, heartbeats, leave, register, say_goodbye,
+};
+use crate::shutdown::Shutdown;
 use crate::streaks::{AfterFailure, Blame, FailureStreaks, jitter};
-use crate::{device, evaluate, failure, health, metrics, shutdown, training};
+use crate::{device, evaluate, failure, health, metrics, training};
 
-/// Runs the worker until the job finishes. Blocking; owns its async runtime.
+/// Runs the worker until the job finishes. Blocking; owns its async runtime, and ends every
+/// task it started before it returns.
 pub fn run(options: WorkerOptions) -> anyhow::Result<()> {
     let progress = Arc::new(Progress::new());
     if let Some(choice) = options.device {
@@ -33,6 +37,20 @@ pub fn run(options: WorkerOptions) -> anyhow::Result<()> {
         .worker_threads(1)
         .enable_all()
         .build()?;
+    let shutdown = Shutdown::default();
+    let served = join_and_serve(&runtime, &shutdown, &options, &progress);
+    shutdown.join(&runtime);
+    served
+}
+
+/// Starts the servers, the signal watcher and the heartbeats as tasks of `shutdown`, joins the
+/// job and serves it until it ends.
+fn join_and_serve(
+    runtime: &Runtime,
+    shutdown: &Shutdown,
+    options: &WorkerOptions,
+    progress: &Arc<Progress>,
+) -> anyhow::Result<()> {
     let link = Link {
         token: options.token.clone(),
         timeout: options.collective_timeout,
@@ -45,37 +63,47 @@ pub fn run(options: WorkerOptions) -> anyhow::Result<()> {
     };
     let collective = CollectiveService::default();
     let mailbox = collective.mailbox();
-    let (address, health_reporter) =
-        runtime.block_on(serve_collective(&options, collective, &link))?;
+    let (address, health_reporter) = runtime.block_on(serve_collective(
+        options, collective, &link, shutdown, runtime,
+    ))?;
     let mut client = runtime.block_on(connect(
         &options.coordinator,
         &options.token,
         options.tls.as_ref(),
     ))?;
     if let Some(address) = &options.metrics_address {
-        runtime.block_on(telemetry::http::serve(
-            address,
-            Arc::clone(&progress.metrics),
-            Progress::health(&progress),
-        ))?;
+        let health = Progress::health(progress);
+        let metrics = Arc::clone(&progress.metrics);
+        let (_, serving) = runtime.block_on(telemetry::http::bind(address, metrics, health))?;
+        shutdown.spawn(runtime, serving);
     }
-    let shutdown = shutdown::on_signals(&runtime);
-    let interval = runtime.block_on(register(&mut client, &options, &address, &progress))?;
-    runtime.spawn(heartbeats(client.clone(), progress.clone(), interval));
-    runtime.spawn(health::mirror_membership(
-        health_reporter,
-        progress.clone(),
-        interval,
-    ));
+    let (farewell_client, farewell_progress) = (client.clone(), Arc::clone(progress));
+    shutdown.watch_signals(
+        runtime,
+        options.shutdown_grace,
+        Box::new(move || {
+            Box::pin(async move {
+                let mut client = farewell_client;
+                say_goodbye(&mut client, &farewell_progress).await;
+            })
+        }),
+    );
+    let interval = runtime.block_on(register(&mut client, options, &address, progress))?;
+    shutdown.spawn(
+        runtime,
+        heartbeats(client.clone(), progress.clone(), interval),
+    );
+    let mirror = health::mirror_membership(health_reporter, progress.clone(), interval);
+    shutdown.spawn(runtime, mirror);
     let context = WorkerContext {
-        options: &options,
+        options,
         link: &link,
         mailbox: &mailbox,
-        progress: &progress,
-        shutdown: &shutdown,
+        progress,
+        shutdown,
     };
     Daemon {
-        runtime: &runtime,
+        runtime,
         client,
         context,
         address,
@@ -138,6 +166,10 @@ impl Daemon<'_> {
                     tracing::info!("the job is finished");
                     return Ok(());
                 }
+                Err(error) if self.context.shutdown.is_cancelled() => {
+                    tracing::info!(error = %format!("{error:#}"), "the generation ended with the shutdown");
+                    return leave(self.runtime, &mut self.client, self.context.progress);
+                }
                 Err(error) => failure = Some(self.failed(&error, &mut streaks)?),
             }
         }
@@ -165,7 +197,7 @@ impl Daemon<'_> {
         let generation = assignment.generation;
         let progress = self.context.progress;
         progress.generation.store(generation, Ordering::SeqCst);
-        progress.cancel.send_replace(false);
+        progress.begin_generation(self.context.shutdown.generation());
         let _span = tracing::info_span!("generation", generation).entered();
         let (runtime, client, context) = (self.runtime, &mut self.client, &self.context);
         match &assignment.work {
@@ -231,18 +263,21 @@ impl Daemon<'_> {
     }
 }
 
-/// Starts the collective service on `--listen`; returns the address peers dial and the
-/// reporter of its health service.
+/// Starts the collective service on `--listen` as a task `shutdown` owns; returns the address
+/// peers dial and the reporter of its health service.
 async fn serve_collective(
     options: &WorkerOptions,
     service: CollectiveService,
     link: &Link,
+    shutdown: &Shutdown,
+    runtime: &Runtime,
 ) -> anyhow::Result<(String, tonic_health::server::HealthReporter)> {
     let listener = tokio::net::TcpListener::bind(&options.listen)
         .await
         .with_context(|| format!("cannot listen on {}", options.listen))?;
     let bound: SocketAddr = listener.local_addr()?;
-    let health = spawn_server(listener, service, link)?;
+    let (health, serving) = server(listener, service, link)?;
+    shutdown.spawn(runtime, serving);
     let advertised = match &options.advertise {
         // A host alone (a Slurm node's name) takes the port bound here.
         Some(host) if !host.contains(':') => format!("{host}:{}", bound.port()),

@@ -205,7 +205,7 @@ async fn join_ring(
         generation,
         &keys,
         context.link,
-        context.progress.cancel.subscribe(),
+        context.progress.generation_token(),
     )
     .await?)
 }

@@ -87,6 +87,11 @@ struct DaemonArgs {
     /// Longest wait for a peer's chunk, in seconds
     #[arg(long, value_name = "SECONDS", default_value_t = 120.0, value_parser = positive_seconds)]
     collective_timeout_s: f64,
+    /// After SIGTERM, how long a worker still busy in its step (wedged in a computation, or
+    /// waiting on a peer) gets before it leaves the job anyway and exits 0; a second signal
+    /// leaves at once
+    #[arg(long, value_name = "SECONDS", default_value_t = 10.0, value_parser = positive_seconds)]
+    shutdown_grace_s: f64,
     /// Scratch space for checkpoints (by default a fresh folder in the system's temp dir)
     #[arg(long, value_name = "DIR")]
     scratch: Option<PathBuf>,
@@ -204,6 +209,7 @@ impl DaemonArgs {
             name,
             expected_model_config,
             collective_timeout: Duration::from_secs_f64(self.collective_timeout_s),
+            shutdown_grace: Duration::from_secs_f64(self.shutdown_grace_s),
             scratch: self
                 .scratch
                 .unwrap_or_else(|| std::env::temp_dir().join(format!("xfactor-worker-{pid}"))),

@@ -35,6 +35,8 @@ pub struct WorkerOptions {
     pub expected_model_config: Option<XFactorConfig>,
     /// Longest wait for a peer's chunk.
     pub collective_timeout: Duration,
+    /// After a SIGTERM, how long a worker still busy in its step gets before it leaves anyway.
+    pub shutdown_grace: Duration,
     /// Scratch space for checkpoints on their way to and from the store.
     pub scratch: PathBuf,
     /// `host:port` for Prometheus `/metrics`; `None`: no endpoint.

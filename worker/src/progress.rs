@@ -8,7 +8,7 @@ use std::sync::{Arc, RwLock};
 
 use proto::v1::Activity;
 use telemetry::Registry;
-use tokio::sync::watch;
+use tokio_util::sync::CancellationToken;
 
 use crate::device::DeviceReport;
 
@@ -25,8 +25,9 @@ pub struct Progress {
     /// What the worker is doing within its step (a `proto::v1::Activity` value), so the
     /// coordinator can tell stuck from slow.
     pub activity: AtomicI32,
-    /// Set when the coordinator abandons the generation: the step in flight stops.
-    pub cancel: watch::Sender<bool>,
+    /// The current generation's token, a child of the shutdown token: cancelled when the
+    /// coordinator abandons the generation or the worker shuts down; the step in flight stops.
+    generation_token: RwLock<CancellationToken>,
     /// Whether the coordinator's last heartbeat reply still knew this worker: false once it
     /// was removed (silent, or stuck in its step while peers waited) until it registers again.
     pub known: AtomicBool,
@@ -39,14 +40,13 @@ pub struct Progress {
 impl Progress {
     /// Nothing registered yet.
     pub fn new() -> Self {
-        let (cancel, _) = watch::channel(false);
         Self {
             worker: AtomicU64::new(0),
             session: RwLock::new(String::new()),
             generation: AtomicU64::new(0),
             step: AtomicU64::new(0),
             activity: AtomicI32::new(Activity::Idle as i32),
-            cancel,
+            generation_token: RwLock::new(CancellationToken::new()),
             known: AtomicBool::new(false),
             metrics: Arc::new(Registry::new()),
             device: DeviceReport::default(),
@@ -68,6 +68,21 @@ impl Progress {
                 )))
             }
         })
+    }
+
+    /// Starts a generation with `token` (a child of the shutdown token).
+    pub fn begin_generation(&self, token: CancellationToken) {
+        if let Ok(mut current) = self.generation_token.write() {
+            *current = token;
+        }
+    }
+
+    /// The current generation's token: the ring and the step loop stop when it is cancelled.
+    pub fn generation_token(&self) -> CancellationToken {
+        self.generation_token.read().map_or_else(
+            |poisoned| poisoned.into_inner().clone(),
+            |token| token.clone(),
+        )
     }
 
     /// This worker's id.

@@ -25,15 +25,19 @@ pub type Client = CoordinatorClient<InterceptedService<Channel, proto::AttachTok
 
 /// Tells the coordinator this worker is gone, so its group re-forms at once.
 pub fn leave(runtime: &Runtime, client: &mut Client, progress: &Progress) -> anyhow::Result<()> {
+    runtime.block_on(say_goodbye(client, progress));
+    Ok(())
+}
+
+/// Tells the coordinator this worker leaves, waiting at most 5 s for its answer; a leave it
+/// does not hear is noticed from the silence.
+pub async fn say_goodbye(client: &mut Client, progress: &Progress) {
     let request = LeaveRequest {
         worker_id: progress.worker_id(),
         reason: "SIGTERM".into(),
         session: progress.session(),
     };
-    let said = runtime.block_on(async {
-        tokio::time::timeout(Duration::from_secs(5), client.leave(request)).await
-    });
-    match said {
+    match tokio::time::timeout(Duration::from_secs(5), client.leave(request)).await {
         Ok(Ok(_)) => tracing::info!("left the job"),
         Ok(Err(status)) => {
             tracing::warn!(error = %status.message(), "the coordinator did not hear the leave; it will notice the silence")
@@ -44,7 +48,6 @@ pub fn leave(runtime: &Runtime, client: &mut Client, progress: &Progress) -> any
             )
         }
     }
-    Ok(())
 }
 
 /// Connects to the coordinator, retrying for a while (it may start after the workers).
@@ -188,9 +191,8 @@ pub async fn heartbeats(mut client: Client, progress: Arc<Progress>, interval: D
                 progress.known.store(reply.known, Ordering::SeqCst);
                 if !reply.generation_current
                     && generation == progress.generation.load(Ordering::SeqCst)
-                    && !*progress.cancel.borrow()
                 {
-                    progress.cancel.send_replace(true);
+                    progress.generation_token().cancel();
                 }
             }
             Err(status) => {

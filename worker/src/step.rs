@@ -284,7 +284,7 @@ mod tests {
             tls: None,
         };
         let mailbox = CollectiveService::default().mailbox();
-        let (_cancel, cancelled) = tokio::sync::watch::channel(false);
+        let cancelled = tokio_util::sync::CancellationToken::new();
         let peers = ["127.0.0.1:1".to_string()];
         let ring = runtime
             .block_on(Ring::connect(

@@ -136,7 +136,7 @@ impl StageRun<'_> {
             tracing::info!(step, "stopping before this step; nothing of it was applied");
             return Ok(Some(Ending::Stopping));
         }
-        if *self.context.progress.cancel.borrow() {
+        if self.context.progress.generation_token().is_cancelled() {
             return Err(GenerationEnded {
                 generation: self.generation,
             }

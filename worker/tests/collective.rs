@@ -7,7 +7,7 @@ use std::time::Duration;
 use bytes::Bytes;
 use proto::v1::Chunk;
 use proto::v1::collective_client::CollectiveClient;
-use tokio::sync::watch;
+use tokio_util::sync::CancellationToken;
 use worker::collective::{
     CollectiveError, CollectiveService, Link, Mailbox, PeerTls, RING_SECRET_KEY, ReduceStats, Ring,
     RingKeys, spawn_server,
@@ -66,7 +66,7 @@ async fn join(
     rank: usize,
     peers: &[String],
     generation: u64,
-    cancelled: watch::Receiver<bool>,
+    cancelled: CancellationToken,
 ) -> Ring {
     let keys = keys(rank, peers.len());
     Ring::connect(mailbox, rank, peers, generation, &keys, &plain(), cancelled)
@@ -101,7 +101,7 @@ async fn three_ranks_sum_in_small_pipelined_chunks() {
         servers.push(serve().await);
     }
     let peers: Vec<String> = servers.iter().map(|(a, _)| a.clone()).collect();
-    let (_cancel, cancelled) = watch::channel(false);
+    let cancelled = CancellationToken::new();
     let len = 1001;
     let mut tasks = Vec::new();
     for (rank, (_, mailbox)) in servers.into_iter().enumerate() {
@@ -135,7 +135,7 @@ async fn all_reduce_beside(chunk: Chunk) -> Result<ReduceStats, CollectiveError>
     let (address_0, mailbox_0) = serve().await;
     let (address_1, _) = serve().await;
     let peers = vec![address_0.clone(), address_1];
-    let (_cancel, cancelled) = watch::channel(false);
+    let cancelled = CancellationToken::new();
     let honest = tokio::spawn(async move {
         let mut ring = join(&mailbox_0, 0, &peers, 3, cancelled).await;
         let mut values = vec![1.0f32; 100];
@@ -210,7 +210,7 @@ async fn two_ranks_sum_over_tls_and_plain_text_is_refused() {
         servers.push(serve_with(&link).await);
     }
     let peers: Vec<String> = servers.iter().map(|(a, _)| a.clone()).collect();
-    let (_cancel, cancelled) = watch::channel(false);
+    let cancelled = CancellationToken::new();
     let mut tasks = Vec::new();
     for (rank, (_, mailbox)) in servers.into_iter().enumerate() {
         let (peers, cancelled, link) = (peers.clone(), cancelled.clone(), link.clone());
@@ -249,7 +249,7 @@ async fn only_the_left_neighbour_of_the_generation_may_stream() {
     let (address_0, mailbox_0) = serve().await;
     let (address_1, mailbox_1) = serve().await;
     let peers = vec![address_0.clone(), address_1];
-    let (_cancel, cancelled) = watch::channel(false);
+    let cancelled = CancellationToken::new();
     // The intruder holds the job token, and even rank 0's own secret, but not rank 1's: its
     // chunk would pass every shape check, and must never reach the sum.
     let mut intruder = CollectiveClient::with_interceptor(

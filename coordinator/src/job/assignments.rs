@@ -1,12 +1,10 @@
-//! The typed assignments a group's members receive: what to train or evaluate, from where, and
-//! with which settings.
+//! The typed assignments a group's members receive, as `settings::work` domain values: what to
+//! train or evaluate, from where, and with which settings. The service converts them to the
+//! wire once, after drawing the ring secrets this pure state does not hold.
 
-use proto::convert::{device_to_wire, devices_to_wire, phase_to_wire};
-use proto::v1::{
-    Assignment, CheckpointToEvaluate, EvaluateAssignment, Finish, TrainAssignment, assignment::Work,
-};
 use settings::Phase;
 use settings::train::StageObjective;
+use settings::work::{Assignment, CheckpointToEvaluate, EvaluateWork, TrainStart, TrainWork, Work};
 
 use super::records::Durable;
 use crate::plan::Plan;
@@ -19,7 +17,22 @@ fn prefix(plan: &Plan, leaf: &str) -> String {
     )
 }
 
-/// Rank `rank` of a training group of `peers` in `phase` (stage 1 or 2).
+/// Where rank's trainer starts in `phase`: the phase's newest commit, else (stage 2) stage 1's
+/// final weights or (stage 1) the job's initial weights, else a fresh initialisation.
+fn start(plan: &Plan, durable: &Durable, phase: Phase) -> TrainStart {
+    let resume = durable.last_commit.as_ref().filter(|c| c.phase == phase);
+    if let Some(commit) = resume {
+        return TrainStart::Resume(commit.location.clone());
+    }
+    let weights = match phase {
+        Phase::Stage2 => durable.stage1_final.clone(),
+        _ => plan.config.init_weights.as_ref().map(|uri| uri.0.clone()),
+    };
+    weights.map_or(TrainStart::Fresh, TrainStart::InitWeights)
+}
+
+/// Rank `rank` of a training group of `peers` in `phase` (stage 1 or 2); its ring secrets are
+/// left to the service.
 pub fn train(
     plan: &Plan,
     durable: &Durable,
@@ -30,52 +43,33 @@ pub fn train(
 ) -> Assignment {
     let stage = plan.stage(phase);
     let config = &plan.config;
-    let resume_from = durable
-        .last_commit
-        .as_ref()
-        .filter(|c| c.phase == phase)
-        .map(|c| c.location.clone())
-        .unwrap_or_default();
-    let init_weights_from = match phase {
-        _ if !resume_from.is_empty() => String::new(),
-        Phase::Stage2 => durable.stage1_final.clone().unwrap_or_default(),
-        _ => config
-            .init_weights
-            .as_ref()
-            .map(|uri| uri.0.clone())
-            .unwrap_or_default(),
-    };
     Assignment {
         generation,
-        work: Some(Work::Train(TrainAssignment {
-            rank: rank as u32,
-            world_size: peers.len() as u32,
+        work: Work::Train(Box::new(TrainWork {
+            stage: phase,
+            rank,
             peers: peers.to_vec(),
-            phase: phase_to_wire(phase) as i32,
             total_steps: stage.steps,
-            resume_from,
-            init_weights_from,
+            start: start(plan, durable, phase),
             checkpoint_prefix: prefix(plan, phase.name()),
             checkpoint_every: config.checkpoint.every.0,
             checksum_every: config.workers.checksum_every.0,
-            lpips_weights: stage.lpips_weights.clone().unwrap_or_default(),
-            device: device_to_wire(config.workers.device) as i32,
-            model: Some((&plan.model).into()),
-            train: Some((&stage.train).into()),
-            data: Some((&stage.data).into()),
-            // Drawn by the service, which holds the randomness this pure state does not.
-            ring_secret: String::new(),
-            left_ring_secret: String::new(),
-            devices: Some(devices_to_wire(&config.workers.devices)),
+            lpips_weights: stage.lpips_weights.clone(),
+            device: config.workers.device,
+            model: plan.model.clone(),
+            train: stage.train.clone(),
+            data: stage.data.clone(),
+            ring: None,
+            devices: config.workers.devices.clone(),
         })),
     }
 }
 
 /// Context views a stage's model renders from: stage 1's one, stage 2's views less the target.
-fn context_views(plan: &Plan, phase: Phase) -> u64 {
+fn context_views(plan: &Plan, phase: Phase) -> usize {
     match &plan.stage(phase).train.objective {
         StageObjective::Stage1(_) => 1,
-        StageObjective::Stage2(stage2) => stage2.views.saturating_sub(1).max(1) as u64,
+        StageObjective::Stage2(stage2) => stage2.views.saturating_sub(1).max(1),
     }
 }
 
@@ -91,7 +85,7 @@ pub fn evaluate(plan: &Plan, durable: &Durable, generation: u64) -> Option<Assig
         .into_iter()
         .filter_map(|(phase, location)| {
             Some(CheckpointToEvaluate {
-                stage: phase_to_wire(phase) as i32,
+                stage: phase,
                 weights: location.clone()?,
                 step: plan.stage(phase).steps,
                 context_views: context_views(plan, phase),
@@ -100,12 +94,12 @@ pub fn evaluate(plan: &Plan, durable: &Durable, generation: u64) -> Option<Assig
         .collect();
     Some(Assignment {
         generation,
-        work: Some(Work::Evaluate(EvaluateAssignment {
+        work: Work::Evaluate(Box::new(EvaluateWork {
             checkpoints,
             report_prefix: prefix(plan, "evaluation"),
-            device: device_to_wire(plan.config.workers.device) as i32,
-            model: Some((&plan.model).into()),
-            spec: Some(spec.into()),
+            device: plan.config.workers.device,
+            model: plan.model.clone(),
+            spec: spec.clone(),
         })),
     })
 }
@@ -114,6 +108,6 @@ pub fn evaluate(plan: &Plan, durable: &Durable, generation: u64) -> Option<Assig
 pub fn finish(generation: u64) -> Assignment {
     Assignment {
         generation,
-        work: Some(Work::Finish(Finish {})),
+        work: Work::Finish,
     }
 }

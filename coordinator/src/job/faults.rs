@@ -4,8 +4,10 @@
 use std::collections::BTreeMap;
 use std::time::{Duration, Instant};
 
-use proto::v1::{Activity, StepReport};
 use settings::Phase;
+use settings::work::{Activity, StepReport};
+
+use super::members::StepProgress;
 
 use super::{JobState, SKIPPED_EXAMPLES, records};
 
@@ -18,6 +20,8 @@ pub const STORE_BACKOFF_MAX: Duration = Duration::from_secs(8);
 pub(super) struct StoreRetry {
     failures: u32,
     until: Option<Instant>,
+    /// The first failure of the current outage.
+    since: Option<Instant>,
 }
 
 impl StoreRetry {
@@ -26,7 +30,13 @@ impl StoreRetry {
         let backoff = Duration::from_secs(1 << self.failures.min(8)).min(STORE_BACKOFF_MAX);
         self.failures += 1;
         self.until = Some(now + backoff);
+        self.since.get_or_insert(now);
         backoff
+    }
+
+    /// How long the store has been failing at `now`, while it is.
+    pub(super) fn failing_for(&self, now: Instant) -> Option<Duration> {
+        self.since.map(|since| now.saturating_duration_since(since))
     }
 
     /// Whether a group may form at `now`.
@@ -44,11 +54,14 @@ impl JobState {
         let Some(group) = &self.group else {
             return false;
         };
+        let stuck_for = |progress: &StepProgress| {
+            now.duration_since(progress.since) > self.timing.stall_timeout
+        };
         let waited_on = |step: u64| {
             group.members.iter().any(|m| {
-                self.members.get(m).is_some_and(|peer| {
-                    peer.activity == (Activity::Allreduce, step)
-                        && now.duration_since(peer.activity_since) > self.timing.stall_timeout
+                let progress = self.members.get(m).and_then(|peer| peer.state.progress());
+                progress.is_some_and(|peer| {
+                    (peer.activity, peer.step) == (Activity::Allreduce, step) && stuck_for(peer)
                 })
             })
         };
@@ -57,18 +70,23 @@ impl JobState {
             .iter()
             .copied()
             .filter(|m| {
-                self.members.get(m).is_some_and(|member| {
-                    let (activity, step) = member.activity;
-                    !member.lost
-                        && matches!(activity, Activity::Computing | Activity::Idle)
-                        && now.duration_since(member.activity_since) > self.timing.stall_timeout
-                        && waited_on(step)
+                let progress = self
+                    .members
+                    .get(m)
+                    .and_then(|member| member.state.progress());
+                progress.is_some_and(|member| {
+                    matches!(member.activity, Activity::Computing | Activity::Idle)
+                        && stuck_for(member)
+                        && waited_on(member.step)
                 })
             })
             .collect();
         for worker in &stalled {
             let (name, step) = match self.members.get(worker) {
-                Some(member) => (member.name.clone(), member.activity.1),
+                Some(member) => (
+                    member.name.clone(),
+                    member.state.progress().map_or(0, |p| p.step),
+                ),
                 None => continue,
             };
             tracing::warn!(
@@ -243,8 +261,7 @@ impl JobState {
             .members
             .iter()
             .filter(|(id, m)| {
-                !m.lost
-                    && m.waiting_after.is_some()
+                m.state.waiting_after().is_some()
                     && !group.members.contains(id)
                     && !excluded(&m.address)
             })
@@ -268,7 +285,7 @@ impl JobState {
         let Some(member) = self.members.get_mut(&worker) else {
             return;
         };
-        member.lost = true;
+        member.state.lose();
         let penalty = self.penalties.entry(member.address.clone()).or_default();
         penalty.failures += 1;
         let factor = 2u32.saturating_pow(penalty.failures - 1);

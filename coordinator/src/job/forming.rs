@@ -5,9 +5,8 @@
 
 use std::time::Instant;
 
-use proto::v1::assignment::Work;
-use proto::v1::{Activity, Assignment};
 use settings::Phase;
+use settings::work::{Assignment, TrainStart, Work};
 
 use super::{GenerationStart, Group, JobState, Member, assignments};
 
@@ -28,17 +27,19 @@ impl JobState {
             1
         };
         let members: Vec<u64> = waiting.into_iter().take(size).collect();
-        self.generation += 1;
+        // The generation advances only once its group has its work.
+        let generation = self.generation + 1;
+        let Some(assignments) = self.group_assignments(phase, &members, generation) else {
+            return false;
+        };
+        self.generation = generation;
         tracing::info!(
-            generation = self.generation,
+            generation,
             %phase,
             world_size = members.len(),
             resume = ?self.durable.last_commit.as_ref().map(|c| c.step),
             "group formed"
         );
-        let Some(assignments) = self.group_assignments(phase, &members) else {
-            return false;
-        };
         for (rank, (&worker, assignment)) in members.iter().zip(assignments).enumerate() {
             if rank == 0 {
                 self.record_generation_start(phase, members.len(), &assignment);
@@ -57,12 +58,12 @@ impl JobState {
     /// The eligible workers waiting for an assignment, in id order, when there are enough of
     /// them to form a group now; `None` while the job should keep waiting.
     fn ready_to_form(&self, now: Instant) -> Option<Vec<u64>> {
-        let eligible = |m: &Member| !m.lost && !self.excluded(&m.address, now);
+        let eligible = |m: &Member| !m.state.is_lost() && !self.excluded(&m.address, now);
         let alive = self.members.values().filter(|m| eligible(m)).count();
         let waiting: Vec<u64> = self
             .members
             .iter()
-            .filter(|(_, m)| eligible(m) && m.waiting_after.is_some())
+            .filter(|(_, m)| eligible(m) && m.state.waiting_after().is_some())
             .map(|(&id, _)| id)
             .collect();
         let ready = if self.generation == self.first_generation {
@@ -98,11 +99,16 @@ impl JobState {
         waiting >= minimum && all_in && (grace_over || waiting >= expected)
     }
 
-    /// Each member's assignment in rank order: a rank of the training ring, or the single
-    /// evaluator's task. `None` when the job has no evaluation section.
-    fn group_assignments(&self, phase: Phase, members: &[u64]) -> Option<Vec<Assignment>> {
+    /// Each member's assignment in rank order for `generation`: a rank of the training ring,
+    /// or the single evaluator's task. `None` when the job has no evaluation section.
+    fn group_assignments(
+        &self,
+        phase: Phase,
+        members: &[u64],
+        generation: u64,
+    ) -> Option<Vec<Assignment>> {
         if !phase.is_training() {
-            let evaluation = assignments::evaluate(&self.plan, &self.durable, self.generation)?;
+            let evaluation = assignments::evaluate(&self.plan, &self.durable, generation)?;
             return Some(vec![evaluation; members.len()]);
         }
         let peers: Vec<String> = members
@@ -110,14 +116,7 @@ impl JobState {
             .map(|m| self.members[m].address.clone())
             .collect();
         let trains = (0..members.len()).map(|rank| {
-            assignments::train(
-                &self.plan,
-                &self.durable,
-                self.generation,
-                phase,
-                rank,
-                &peers,
-            )
+            assignments::train(&self.plan, &self.durable, generation, phase, rank, &peers)
         });
         Some(trains.collect())
     }
@@ -126,10 +125,12 @@ impl JobState {
     /// says: the checkpoint it resumes, and the weights it initialises or evaluates.
     fn record_generation_start(&mut self, phase: Phase, world_size: usize, rank0: &Assignment) {
         let (resume_from, init_weights_from) = match &rank0.work {
-            Some(Work::Train(train)) => {
-                (train.resume_from.clone(), train.init_weights_from.clone())
-            }
-            Some(Work::Evaluate(evaluate)) => {
+            Work::Train(train) => match &train.start {
+                TrainStart::Resume(location) => (location.clone(), String::new()),
+                TrainStart::InitWeights(location) => (String::new(), location.clone()),
+                TrainStart::Fresh => (String::new(), String::new()),
+            },
+            Work::Evaluate(evaluate) => {
                 let weights: Vec<&str> = evaluate
                     .checkpoints
                     .iter()
@@ -137,7 +138,7 @@ impl JobState {
                     .collect();
                 (String::new(), weights.join(" "))
             }
-            _ => (String::new(), String::new()),
+            Work::Finish => (String::new(), String::new()),
         };
         self.report.generations.push(GenerationStart {
             generation: self.generation,
@@ -152,9 +153,7 @@ impl JobState {
     /// so stall detection measures from the group's formation.
     fn restart_progress(&mut self, worker: u64, now: Instant) {
         if let Some(member) = self.members.get_mut(&worker) {
-            member.finished_step = None;
-            member.activity = (Activity::Idle, 0);
-            member.activity_since = now;
+            member.state.joins_group(now);
         }
     }
 }

@@ -10,42 +10,28 @@
 use std::collections::{BTreeMap, BTreeSet, HashMap};
 use std::time::{Duration, Instant};
 
-use proto::v1::{Activity, Assignment, StepReport};
+use settings::work::{Activity, Assignment, StepReport};
 use settings::{DeviceInUse, Phase};
 
 use crate::plan::Plan;
 use faults::StoreRetry;
+use members::Member;
 
 mod assignments;
 mod faults;
 mod forming;
+mod members;
 mod queries;
 mod records;
 mod steps;
 #[cfg(test)]
 mod tests;
 
+pub use queries::{JobStatus, WorkerSummary};
 pub use records::{Commit, Durable, GenerationStart, Report, StepRecord};
 
 /// How many skipped-frame examples the report keeps.
 const SKIPPED_EXAMPLES: usize = 8;
-
-/// A registered worker.
-#[derive(Debug, Clone)]
-struct Member {
-    name: String,
-    address: String,
-    last_seen: Instant,
-    lost: bool,
-    waiting_after: Option<u64>,
-    finished_step: Option<(Phase, u64)>,
-    samples_per_s: f64,
-    /// The device it said it trains on, once a generation resolved it.
-    device: Option<DeviceInUse>,
-    /// What the worker last said it was doing, at which step, and since when.
-    activity: (Activity, u64),
-    activity_since: Instant,
-}
 
 /// A worker's record of failures, kept by its collective address so it survives the worker
 /// registering again under a new id.
@@ -254,21 +240,7 @@ impl JobState {
         self.next_worker += 1;
         self.first_registration.get_or_insert(now);
         tracing::info!(worker = id, %name, %address, "worker registered");
-        self.members.insert(
-            id,
-            Member {
-                name,
-                address,
-                last_seen: now,
-                lost: false,
-                waiting_after: None,
-                finished_step: None,
-                samples_per_s: 0.0,
-                device: None,
-                activity: (Activity::Idle, 0),
-                activity_since: now,
-            },
-        );
+        self.members.insert(id, Member::new(name, address, now));
         id
     }
 
@@ -282,13 +254,10 @@ impl JobState {
         now: Instant,
     ) -> (bool, bool) {
         match self.members.get_mut(&worker) {
-            Some(member) if !member.lost => {
+            Some(member) if !member.state.is_lost() => {
                 member.last_seen = now;
-                if let Some(progress) = progress
-                    && progress != member.activity
-                {
-                    member.activity = progress;
-                    member.activity_since = now;
+                if let Some((activity, step)) = progress {
+                    member.state.heard(activity, step, now);
                 }
                 (true, self.is_current(generation))
             }
@@ -329,17 +298,17 @@ impl JobState {
             .members
             .get_mut(&worker)
             .ok_or(Refusal::UnknownWorker(worker))?;
-        if member.lost {
+        if member.state.is_lost() {
             return Err(Refusal::LostWorker(worker));
         }
         member.last_seen = now;
-        member.waiting_after = Some(after);
+        member.state.asks_after(after);
         if self
             .assignments
             .get(&worker)
             .is_some_and(|a| a.generation > after)
         {
-            member.waiting_after = None;
+            member.state.assigned();
             return Ok(self.assignments.remove(&worker));
         }
         if self.finished() {
@@ -372,7 +341,7 @@ impl JobState {
         };
         let world_size = group.members.len();
         if let Some(member) = self.members.get_mut(&worker) {
-            member.finished_step = Some((phase, report.step));
+            member.state.finished(phase, report.step);
             member.samples_per_s = report.samples_per_s;
         }
         let loss = report.loss.unwrap_or_default();
@@ -388,15 +357,13 @@ impl JobState {
             record.loss = loss.total;
             record.learning_rate = loss.learning_rate;
             record.l1 = loss.l1;
-            record.lpips = (!loss.lpips.is_nan()).then_some(loss.lpips);
+            record.lpips = loss.lpips;
             record.grad_norm = loss.grad_norm;
             record.applied = loss.applied;
             self.last_loss = loss.total;
         }
-        if report.checksum_computed {
-            record
-                .checksums
-                .insert(rank as u32, report.parameter_checksum);
+        if let Some(checksum) = report.checksum {
+            record.checksums.insert(rank as u32, checksum);
             let distinct: BTreeSet<u32> = record.checksums.values().copied().collect();
             if distinct.len() > 1 {
                 let message = format!(
@@ -502,9 +469,10 @@ impl JobState {
         self.last_tick = Some(now);
         let mut changed = false;
         for (id, member) in self.members.iter_mut() {
-            if !member.lost && now.duration_since(member.last_seen) > self.timing.heartbeat_timeout
+            if !member.state.is_lost()
+                && now.duration_since(member.last_seen) > self.timing.heartbeat_timeout
             {
-                member.lost = true;
+                member.state.lose();
                 tracing::warn!(worker = id, name = %member.name, "worker lost: no heartbeat");
                 changed = true;
             }
@@ -515,12 +483,13 @@ impl JobState {
             let lost = group
                 .members
                 .iter()
-                .any(|m| self.members.get(m).is_none_or(|m| m.lost));
+                .any(|m| self.members.get(m).is_none_or(|m| m.state.is_lost()));
             let last_step = self.phase_steps(group.phase) - 1;
             let troubled = group.members.iter().any(|m| {
                 self.members.get(m).is_some_and(|member| {
-                    member.waiting_after == Some(group.generation)
-                        && member.finished_step != Some((group.phase, last_step))
+                    member
+                        .state
+                        .gave_up(group.generation, (group.phase, last_step))
                 })
             });
             if lost || troubled {
@@ -544,13 +513,13 @@ impl JobState {
     /// once, so its group re-forms without waiting for its heartbeats to time out. Returns
     /// whether the worker was known.
     pub fn leave(&mut self, worker: u64, reason: &str) -> bool {
-        match self.members.get_mut(&worker) {
-            Some(member) if !member.lost => {
-                member.lost = true;
-                tracing::warn!(worker, name = %member.name, %reason, "worker left");
-                true
-            }
-            _ => false,
+        let Some(member) = self.members.get_mut(&worker) else {
+            return false;
+        };
+        let left = member.state.lose();
+        if left {
+            tracing::warn!(worker, name = %member.name, %reason, "worker left");
         }
+        left
     }
 }

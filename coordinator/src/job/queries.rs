@@ -1,11 +1,58 @@
 //! What the job state tells operators and the service: status, throughput, curves, and the
 //! step records for the history file.
 
-use proto::v1::{JobStatus, WorkerSummary};
-use settings::Phase;
+use std::time::{Duration, Instant};
+
+use settings::{DeviceInUse, Phase};
 use telemetry::curves::{Curve, CurvePanel};
 
 use super::{JobState, StepRecord};
+
+/// Where the job stands, for the `status` command and the metrics.
+#[derive(Debug, Clone, PartialEq)]
+pub struct JobStatus {
+    /// The job's name.
+    pub job_name: String,
+    /// Its phase.
+    pub phase: Phase,
+    /// Whether a group is running (false: waiting for workers).
+    pub group_running: bool,
+    /// The newest generation.
+    pub generation: u64,
+    /// Live workers.
+    pub workers: usize,
+    /// The step the phase is at.
+    pub step: u64,
+    /// Steps of the phase (0 outside training).
+    pub total_steps: u64,
+    /// The phase's newest commit.
+    pub last_commit: Option<String>,
+    /// Rank 0's newest loss.
+    pub last_loss: f32,
+    /// Generations abandoned so far.
+    pub restarts: u64,
+    /// Steps done over both stages.
+    pub job_steps_done: u64,
+    /// Steps of both stages.
+    pub job_steps_total: u64,
+    /// The live workers, by id.
+    pub worker_list: Vec<WorkerSummary>,
+    /// How long the object store has been failing generations, while it is.
+    pub store_failing: Option<Duration>,
+}
+
+/// One live worker in [`JobStatus`].
+#[derive(Debug, Clone, PartialEq)]
+pub struct WorkerSummary {
+    /// Its id.
+    pub worker_id: u64,
+    /// Its name.
+    pub name: String,
+    /// The device it trains on, once a generation resolved it.
+    pub device: Option<DeviceInUse>,
+    /// Its samples per second in its last step.
+    pub samples_per_s: f64,
+}
 
 impl JobState {
     /// Step records for the history writer: see [`super::steps::StepLog::take_sealed`].
@@ -13,17 +60,24 @@ impl JobState {
         self.steps.take_sealed(all)
     }
 
-    /// Progress for the `status` command.
-    pub fn status(&self) -> JobStatus {
+    /// Takes back the step records an earlier coordinator of this job wrote to the history, so
+    /// the report and the curves start from the job's first step: see
+    /// [`super::steps::StepLog::restore`].
+    pub fn restore_history(&mut self, records: Vec<StepRecord>) {
+        self.steps.restore(records);
+    }
+
+    /// Progress for the `status` command at `now`.
+    pub fn status(&self, now: Instant) -> JobStatus {
         let phase = self.durable.phase;
         let stage1 = self.plan.stage(Phase::Stage1).steps;
         let stage2 = self.plan.stage(Phase::Stage2).steps;
         JobStatus {
             job_name: self.plan.config.job.0.clone(),
-            phase: proto::convert::phase_to_wire(phase) as i32,
+            phase,
             group_running: self.group.is_some(),
             generation: self.generation,
-            workers: self.members.values().filter(|m| !m.lost).count() as u32,
+            workers: self.members.values().filter(|m| !m.state.is_lost()).count(),
             step: self.current_step,
             total_steps: if phase.is_training() {
                 self.plan.stage(phase).steps
@@ -34,8 +88,7 @@ impl JobState {
                 .durable
                 .last_commit
                 .as_ref()
-                .map(|c| c.location.clone())
-                .unwrap_or_default(),
+                .map(|c| c.location.clone()),
             last_loss: self.last_loss,
             restarts: self.report.restarts,
             job_steps_done: match phase {
@@ -47,17 +100,15 @@ impl JobState {
             worker_list: self
                 .members
                 .iter()
-                .filter(|(_, member)| !member.lost)
+                .filter(|(_, member)| !member.state.is_lost())
                 .map(|(&worker_id, member)| WorkerSummary {
                     worker_id,
                     name: member.name.clone(),
-                    device: member
-                        .device
-                        .as_ref()
-                        .map(proto::convert::device_in_use_to_wire),
+                    device: member.device.clone(),
                     samples_per_s: member.samples_per_s,
                 })
                 .collect(),
+            store_failing: self.store_retry.failing_for(now),
         }
     }
 
@@ -84,7 +135,7 @@ impl JobState {
     pub fn live_workers(&self) -> Vec<u64> {
         self.members
             .iter()
-            .filter(|(_, m)| !m.lost)
+            .filter(|(_, m)| !m.state.is_lost())
             .map(|(&id, _)| id)
             .collect()
     }

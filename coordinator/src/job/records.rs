@@ -102,8 +102,9 @@ impl Durable {
     }
 }
 
-/// One finished step as reported by every rank.
-#[derive(Debug, Clone, Serialize)]
+/// One finished step as reported by every rank; read back from the store's step history when a
+/// coordinator restarts.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct StepRecord {
     /// The training stage.
     #[serde(rename = "stage", with = "settings::phase::as_number")]

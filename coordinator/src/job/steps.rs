@@ -136,6 +136,24 @@ impl StepLog {
         taken
     }
 
+    /// Takes back `records` read from the store's history (a restarted coordinator's
+    /// predecessor's steps, oldest first) as if this log had sealed them: they join the curves
+    /// and the report's retained records, and are not handed to the history writer again.
+    /// Call before any step is reported.
+    pub fn restore(&mut self, records: Vec<StepRecord>) {
+        for record in records {
+            let key = (record.phase, record.step, record.generation);
+            match self.index.get(&key) {
+                Some(&position) => self.records[position] = record,
+                None => {
+                    self.index.insert(key, self.records.len());
+                    self.records.push(record);
+                }
+            }
+        }
+        self.take_sealed(true);
+    }
+
     /// Drops the oldest `count` records from memory.
     fn forget(&mut self, count: usize) {
         self.records.drain(..count);
@@ -229,5 +247,27 @@ mod tests {
                 .iter()
                 .all(|(&step, row)| step % 16 == 0 && row.loss == step as f32)
         );
+    }
+
+    #[test]
+    fn restored_history_joins_the_report_and_curves_and_is_not_written_again() {
+        let mut before = StepLog::default();
+        for step in 0..10 {
+            before.record(Phase::Stage1, step, 1).loss = step as f32;
+        }
+        let history = before.take_sealed(true);
+        let mut after = StepLog::default();
+        after.restore(history.clone());
+        assert_eq!(after.retained(), &history[..]);
+        assert!(after.take_sealed(true).is_empty(), "already in the store");
+        after.record(Phase::Stage1, 8, 2).loss = 80.0;
+        let curve = after.curve(Phase::Stage1);
+        assert_eq!(
+            curve.keys().copied().collect::<Vec<_>>(),
+            (0..10).collect::<Vec<_>>()
+        );
+        assert_eq!(curve[&8].loss, 80.0, "the re-run step replaces its row");
+        let written: Vec<u64> = after.take_sealed(true).iter().map(|r| r.step).collect();
+        assert_eq!(written, [8]);
     }
 }

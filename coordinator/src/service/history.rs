@@ -29,6 +29,14 @@ pub fn segment_path(segment: u64) -> String {
     format!("{PREFIX}{segment:06}.jsonl")
 }
 
+/// The segment number of a history object's path, if it is one.
+fn segment_number(path: &str) -> Option<u64> {
+    path.strip_prefix(PREFIX)?
+        .strip_suffix(".jsonl")?
+        .parse::<u64>()
+        .ok()
+}
+
 impl History {
     /// Continues the history under `root`: the first segment after any already there.
     pub async fn open(root: DataRoot) -> Result<Self, StoreError> {
@@ -36,14 +44,7 @@ impl History {
             .list()
             .await?
             .iter()
-            .filter_map(|object| {
-                object
-                    .path
-                    .strip_prefix(PREFIX)?
-                    .strip_suffix(".jsonl")?
-                    .parse::<u64>()
-                    .ok()
-            })
+            .filter_map(|object| segment_number(&object.path))
             .max()
             .map_or(0, |last| last + 1);
         Ok(Self {
@@ -72,6 +73,31 @@ impl History {
             self.write().await?;
         }
         Ok(())
+    }
+
+    /// Every record of the history under `root`, segment by segment, oldest first: what a
+    /// restarted coordinator's report and curves start from. A line that does not parse (a
+    /// segment cut short mid-write) is skipped with a warning.
+    pub async fn read_all(root: &DataRoot) -> Result<Vec<StepRecord>, StoreError> {
+        let mut segments: Vec<u64> = root
+            .list()
+            .await?
+            .iter()
+            .filter_map(|object| segment_number(&object.path))
+            .collect();
+        segments.sort_unstable();
+        let mut records = Vec::new();
+        for segment in segments {
+            let path = segment_path(segment);
+            let bytes = root.read(&path).await?;
+            for line in String::from_utf8_lossy(&bytes).lines() {
+                match serde_json::from_str::<StepRecord>(line) {
+                    Ok(record) => records.push(record),
+                    Err(error) => tracing::warn!(%path, %error, "history line skipped"),
+                }
+            }
+        }
+        Ok(records)
     }
 
     async fn write(&mut self) -> Result<(), StoreError> {
@@ -124,5 +150,18 @@ mod tests {
         restarted.append(&records(0..1)).await.unwrap();
         assert_eq!(lines(&root, 2).await.len(), 1);
         assert_eq!(lines(&root, 1).await.len(), 7, "earlier segments stay");
+
+        let mut cut = String::from_utf8(root.read(&segment_path(2)).await.unwrap()).unwrap();
+        cut.push_str("{\"stage\": 1, \"st");
+        root.write(&segment_path(2), cut.into_bytes())
+            .await
+            .unwrap();
+        let all = History::read_all(&root).await.unwrap();
+        let steps: Vec<u64> = all.iter().map(|r| r.step).collect();
+        let expected: Vec<u64> = (0..total).chain(0..1).collect();
+        assert_eq!(
+            steps, expected,
+            "every segment in order, the cut line skipped"
+        );
     }
 }

@@ -215,7 +215,7 @@ impl CoordinatorService {
         metrics::forget_departed(&self.metrics, &live);
         metrics::record_status(
             &self.metrics,
-            &state.status(),
+            &state.status(Instant::now()),
             state.phase(),
             state.group_throughput(),
             state.mismatches(),

@@ -4,12 +4,12 @@
 
 use std::time::{Duration, Instant};
 
-use proto::convert::{ConvertError, device_from_wire, phase_from_wire};
+use proto::convert::{ConvertError, device_from_wire, phase_from_wire, phase_to_wire};
 use proto::v1::coordinator_server::Coordinator;
 use proto::v1::{
     Assignment, AwaitAssignmentRequest, CheckpointCommit, CommitAck, HeartbeatReply,
     HeartbeatRequest, JobStatus, LeaveReply, LeaveRequest, RegisterReply, RegisterRequest,
-    StatusRequest, StepAck, StepReport,
+    StatusRequest, StepAck, StepReport, WorkerSummary,
 };
 use settings::XFactorConfig;
 use settings::work::{FailureCause, GenerationFailure};
@@ -71,12 +71,9 @@ impl Coordinator for CoordinatorService {
         let span = tracing::trace_span!("rpc_heartbeat", worker = request.worker_id);
         self.sessions.check(request.worker_id, &request.session)?;
         async {
-            let activity = proto::v1::Activity::try_from(request.activity).map_err(|_| {
-                malformed(ConvertError::Unknown {
-                    field: "heartbeat.activity",
-                    value: request.activity,
-                })
-            })?;
+            let activity =
+                proto::convert::activity_from_wire(request.activity, "heartbeat.activity")
+                    .map_err(malformed)?;
             let device =
                 proto::convert::reported_device(request.device.as_ref(), "heartbeat.device")
                     .map_err(malformed)?;
@@ -118,7 +115,8 @@ impl Coordinator for CoordinatorService {
             if let Some(device) = device {
                 state.record_device(report.worker_id, device);
             }
-            let generation_current = state.report_step(report.worker_id, phase, &report);
+            let step = settings::work::StepReport::from(&report);
+            let generation_current = state.report_step(report.worker_id, phase, &step);
             if generation_current {
                 let rank0 = state.is_rank0(report.worker_id);
                 metrics::record_step(&self.metrics, &report, rank0);
@@ -146,10 +144,10 @@ impl Coordinator for CoordinatorService {
         &self,
         _request: Request<StatusRequest>,
     ) -> Result<Response<JobStatus>, Status> {
-        let status = async { self.state.lock().await.status() }
+        let status = async { self.state.lock().await.status(Instant::now()) }
             .instrument(tracing::debug_span!("rpc_status"))
             .await;
-        Ok(Response::new(status))
+        Ok(Response::new(status_to_wire(&status)))
     }
 
     async fn leave(&self, request: Request<LeaveRequest>) -> Result<Response<LeaveReply>, Status> {
@@ -286,9 +284,10 @@ impl CoordinatorService {
                     Instant::now(),
                 ) {
                     Err(refusal) => return Err(refused(refusal)),
-                    Ok(Some(mut assignment)) => {
-                        self.ring_secrets.fill(&mut assignment)?;
-                        return Ok(Response::new(assignment));
+                    Ok(Some(assignment)) => {
+                        let mut wire = Assignment::from(&assignment);
+                        self.ring_secrets.fill(&mut wire)?;
+                        return Ok(Response::new(wire));
                     }
                     Ok(None) => {}
                 }
@@ -385,4 +384,36 @@ fn differing_fields(job: &XFactorConfig, worker: &XFactorConfig) -> Vec<String> 
             format!("{key}: job {value} vs worker {theirs}")
         })
         .collect()
+}
+
+/// The job's status as the `status` RPC answers it.
+fn status_to_wire(status: &crate::job::JobStatus) -> JobStatus {
+    JobStatus {
+        job_name: status.job_name.clone(),
+        phase: phase_to_wire(status.phase) as i32,
+        generation: status.generation,
+        workers: u32::try_from(status.workers).unwrap_or(u32::MAX),
+        step: status.step,
+        total_steps: status.total_steps,
+        last_commit: status.last_commit.clone().unwrap_or_default(),
+        last_loss: status.last_loss,
+        restarts: status.restarts,
+        job_steps_done: status.job_steps_done,
+        job_steps_total: status.job_steps_total,
+        group_running: status.group_running,
+        worker_list: status
+            .worker_list
+            .iter()
+            .map(|worker| WorkerSummary {
+                worker_id: worker.worker_id,
+                name: worker.name.clone(),
+                device: worker
+                    .device
+                    .as_ref()
+                    .map(proto::convert::device_in_use_to_wire),
+                samples_per_s: worker.samples_per_s,
+            })
+            .collect(),
+        store_failing_s: status.store_failing.map(|d| d.as_secs_f64()),
+    }
 }

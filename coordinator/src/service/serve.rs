@@ -88,8 +88,20 @@ impl CoordinatorService {
     }
 
     /// The step history and the TensorBoard runs under the checkpoint URI, each training
-    /// stage's run starting with the resolved configuration it trains with.
+    /// stage's run starting with the resolved configuration it trains with. The steps an
+    /// earlier coordinator of this job recorded are read back first, so the report and the
+    /// curves cover the whole run, not only the steps since this start.
     pub(super) async fn open_recorders(&self) -> Result<Mutex<Recorders>, ServeError> {
+        let earlier = history::History::read_all(&self.checkpoints)
+            .await
+            .map_err(ServeError::OpenStore)?;
+        if !earlier.is_empty() {
+            tracing::info!(
+                steps = earlier.len(),
+                "step history of earlier runs read back"
+            );
+            self.state.lock().await.restore_history(earlier);
+        }
         let mut recorders = Recorders {
             history: history::History::open(self.checkpoints.clone())
                 .await

@@ -83,6 +83,22 @@ impl Running {
         }
     }
 
+    /// What `xfactor-coordinator status` prints for the running job.
+    pub fn status_line(&self) -> String {
+        let output = std::process::Command::new(binaries().join("xfactor-coordinator"))
+            .args(["status", "--address"])
+            .arg(format!("http://127.0.0.1:{}", self.job.port))
+            .args(["--token", self.job.token()])
+            .output()
+            .unwrap();
+        assert!(
+            output.status.success(),
+            "status failed: {}",
+            String::from_utf8_lossy(&output.stderr)
+        );
+        String::from_utf8_lossy(&output.stdout).into_owned()
+    }
+
     /// Waits for the coordinator to end and returns the report.
     pub fn finish(mut self, limit: Duration) -> Value {
         let deadline = Instant::now() + limit;
@@ -307,6 +323,12 @@ impl Moto {
     }
 
     /// Creates bucket `name` (object_store cannot create buckets).
+    /// Sends the server signal `name` (`STOP` freezes it: connections open and requests hang
+    /// unanswered, as with a store that is unreachable; `CONT` brings it back, data intact).
+    pub fn signal(&self, name: &str) {
+        signal(&self.child, name);
+    }
+
     pub fn create_bucket(&self, name: &str) {
         let status = self.request("PUT", &format!("/{name}")).unwrap();
         assert_eq!(status, 200, "creating bucket {name}");

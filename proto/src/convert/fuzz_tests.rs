@@ -179,4 +179,30 @@ fn no_mutated_report_panics_its_conversion() {
             let _ = seconds_from_wire(message.heartbeat_interval_s, 0.0, "interval");
         },
     );
+    let step = v1::StepReport {
+        worker_id: 3,
+        generation: 2,
+        step: 40,
+        loss: Some(v1::LossTerms {
+            total: 0.25,
+            lpips: f32::NAN,
+            ..v1::LossTerms::default()
+        }),
+        checksum_computed: true,
+        skipped_examples: vec!["re10k a.png: unreadable".into()],
+        ..v1::StepReport::default()
+    };
+    never_panics(&step, 23, |message| {
+        let _ = settings::work::StepReport::from(message);
+    });
+    never_panics(
+        &v1::HeartbeatRequest {
+            activity: v1::Activity::Allreduce as i32,
+            ..v1::HeartbeatRequest::default()
+        },
+        24,
+        |message| {
+            let _ = activity_from_wire(message.activity, "heartbeat.activity");
+        },
+    );
 }

@@ -17,12 +17,14 @@ use crate::v1;
 
 mod device;
 mod model;
+mod progress;
 mod work;
 
 pub use device::{
     device_from_wire, device_in_use_from_wire, device_in_use_to_wire, device_to_wire,
     reported_device, worker_line,
 };
+pub use progress::{activity_from_wire, activity_to_wire};
 pub use work::{devices_from_wire, devices_to_wire};
 
 /// A message that cannot become its settings type.
@@ -100,8 +102,20 @@ pub fn phase_from_wire(value: i32, field: &'static str) -> Result<Phase, Convert
     }
 }
 
-/// What a job is doing, for status lines: its phase, and whether its group is still forming.
+/// What a job is doing, for status lines: its phase, whether its group is still forming, and
+/// how long it has been waiting for the object store.
 pub fn status_label(status: &v1::JobStatus) -> String {
+    let label = phase_label(status);
+    match status.store_failing_s {
+        Some(seconds) if seconds.is_finite() && seconds >= 0.0 => {
+            format!("{label}, waiting for the store since {seconds:.0} s ago")
+        }
+        _ => label,
+    }
+}
+
+/// The phase part of [`status_label`].
+fn phase_label(status: &v1::JobStatus) -> String {
     let phase = phase_from_wire(status.phase, "status.phase");
     match phase {
         Ok(Phase::Finished) => "finished".into(),

@@ -219,3 +219,23 @@ fn seconds_from_the_wire_never_panic_and_name_their_field() {
     );
     assert!(seconds_from_wire(MAX_WIRE_SECONDS, 0.0, "reply.interval_s").is_ok());
 }
+
+#[test]
+fn the_status_label_says_how_long_the_job_waits_for_the_store() {
+    let status = v1::JobStatus {
+        phase: v1::Phase::Stage1 as i32,
+        group_running: false,
+        store_failing_s: Some(90.0),
+        ..v1::JobStatus::default()
+    };
+    assert_eq!(
+        super::status_label(&status),
+        "stage1 (waiting for workers), waiting for the store since 90 s ago"
+    );
+    let working = v1::JobStatus {
+        store_failing_s: None,
+        group_running: true,
+        ..status
+    };
+    assert_eq!(super::status_label(&working), "stage1");
+}

@@ -14,14 +14,15 @@ use std::time::{Duration, Instant};
 use bytes::Bytes;
 use proto::v1::Chunk;
 use proto::v1::collective_client::CollectiveClient;
-use tokio::sync::{mpsc, watch};
+use tokio::sync::mpsc;
 use tokio_stream::wrappers::UnboundedReceiverStream;
+use tokio_util::sync::CancellationToken;
 
 mod service;
 
 use service::Inbound;
 pub use service::{
-    CollectiveService, INBOX_CHUNKS, Mailbox, RING_SECRET_KEY, RingKeys, spawn_server,
+    CollectiveService, INBOX_CHUNKS, Mailbox, RING_SECRET_KEY, RingKeys, server, spawn_server,
 };
 
 /// Values per chunk (1 MiB of `f32`): big enough to amortise per-message costs, small enough to
@@ -140,7 +141,7 @@ pub struct Ring {
     operation: u64,
     outbound: Option<mpsc::UnboundedSender<Chunk>>,
     inbox: Option<mpsc::Receiver<Inbound>>,
-    cancel: watch::Receiver<bool>,
+    cancel: CancellationToken,
     timeout: Duration,
     chunk_values: usize,
 }
@@ -148,7 +149,7 @@ pub struct Ring {
 impl Ring {
     /// Joins the ring of `generation`: opens the stream to the right neighbour (presenting
     /// `keys.own`) and takes this rank's inbox, which admits only the stream presenting
-    /// `keys.left`. `cancel` turning true aborts any all-reduce in progress.
+    /// `keys.left`. `cancel` cancelled aborts any all-reduce in progress.
     pub async fn connect(
         mailbox: &Mailbox,
         rank: usize,
@@ -156,7 +157,7 @@ impl Ring {
         generation: u64,
         keys: &RingKeys,
         link: &Link,
-        cancel: watch::Receiver<bool>,
+        cancel: CancellationToken,
     ) -> Result<Self, CollectiveError> {
         let timeout = link.timeout;
         let world = peers.len().max(1);
@@ -200,7 +201,7 @@ impl Ring {
         // A right neighbour that died before the ring formed would hold this rank here for
         // the whole timeout; the coordinator's end of the generation releases it at once.
         let channel = loop {
-            if *ring.cancel.borrow() {
+            if ring.cancel.is_cancelled() {
                 return Err(CollectiveError::Cancelled);
             }
             match endpoint.connect().await {
@@ -282,8 +283,8 @@ impl Ring {
             rank: left,
             reason: "no inbox".into(),
         })?;
-        let cancel = &mut self.cancel;
-        if *cancel.borrow() {
+        let cancel = &self.cancel;
+        if cancel.is_cancelled() {
             return Err(CollectiveError::Cancelled);
         }
         tokio::select! {
@@ -292,7 +293,7 @@ impl Ring {
                 Some(Err(failure)) => Err(CollectiveError::InboundBroken { rank: left, reason: failure.to_string() }),
                 None => Err(CollectiveError::InboundBroken { rank: left, reason: "stream closed".into() }),
             },
-            _ = cancel.wait_for(|cancelled| *cancelled) => Err(CollectiveError::Cancelled),
+            () = cancel.cancelled() => Err(CollectiveError::Cancelled),
             () = tokio::time::sleep(timeout) => Err(CollectiveError::Timeout { rank: left, seconds: timeout.as_secs_f64() }),
         }
     }

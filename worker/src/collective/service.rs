@@ -225,15 +225,32 @@ impl CollectiveService {
     }
 }
 
-/// Serves `service` on `listener` behind the job-token check (and TLS when `link` has it),
-/// with flow-control windows sized for megabyte chunks, and `grpc.health.v1` beside it
-/// without the check. Runs until the process ends; the returned reporter changes what the
-/// health service says.
+/// Serves `service` on `listener` (see [`server`]) on a task of its own until the process
+/// ends; the returned reporter changes what the health service says.
 pub fn spawn_server(
     listener: tokio::net::TcpListener,
     service: CollectiveService,
     link: &Link,
 ) -> Result<tonic_health::server::HealthReporter, super::CollectiveError> {
+    let (reporter, serving) = server(listener, service, link)?;
+    tokio::spawn(serving);
+    Ok(reporter)
+}
+
+/// The server of `service` on `listener` behind the job-token check (and TLS when `link` has
+/// it), with flow-control windows sized for megabyte chunks, and `grpc.health.v1` beside it
+/// without the check; it serves until dropped. Also returns the health service's reporter.
+pub fn server(
+    listener: tokio::net::TcpListener,
+    service: CollectiveService,
+    link: &Link,
+) -> Result<
+    (
+        tonic_health::server::HealthReporter,
+        impl std::future::Future<Output = ()> + Send + 'static,
+    ),
+    super::CollectiveError,
+> {
     let server = tonic::service::interceptor::InterceptedService::new(
         proto::v1::collective_server::CollectiveServer::new(service)
             .max_decoding_message_size(proto::MAX_MESSAGE_BYTES),
@@ -247,12 +264,12 @@ pub fn spawn_server(
     }
     let (reporter, health) = tonic_health::server::health_reporter();
     let serving = reporter.clone();
-    tokio::spawn(async move {
+    let run = async move {
         serving
             .set_serving::<proto::v1::collective_server::CollectiveServer<CollectiveService>>()
             .await;
         // Beside the token-checked service, not behind it: probes carry no token.
-        builder
+        let served = builder
             .initial_stream_window_size(Some(16 * 1024 * 1024))
             .initial_connection_window_size(Some(32 * 1024 * 1024))
             .max_frame_size(Some(1024 * 1024))
@@ -260,7 +277,10 @@ pub fn spawn_server(
             .add_service(server)
             .add_service(health)
             .serve_with_incoming(tokio_stream::wrappers::TcpListenerStream::new(listener))
-            .await
-    });
-    Ok(reporter)
+            .await;
+        if let Err(error) = served {
+            tracing::warn!(%error, "the collective server stopped");
+        }
+    };
+    Ok((reporter, run))
 }

@@ -9,11 +9,9 @@ fn checksum_disagreements_are_recorded_once_per_step() {
     let generation = run.assign(0)[0].as_ref().unwrap().generation;
     for (worker, checksum) in [(run.workers[0], 1), (run.workers[1], 2)] {
         let report = StepReport {
-            worker_id: worker,
             generation,
             step: 0,
-            parameter_checksum: checksum,
-            checksum_computed: true,
+            checksum: Some(checksum),
             ..StepReport::default()
         };
         run.state.report_step(worker, Phase::Stage1, &report);
@@ -32,7 +30,6 @@ fn skipped_frames_past_the_job_limit_stop_the_job_naming_examples() {
         (run.workers[1], limit / 2 + 1, "b.jpg"),
     ] {
         let report = StepReport {
-            worker_id: worker,
             generation,
             step: 0,
             skipped_frames: count,
@@ -48,8 +45,8 @@ fn skipped_frames_past_the_job_limit_stop_the_job_naming_examples() {
     assert!(outcome.contains("re10k b.jpg"), "{outcome}");
     let next = run.assign(generation);
     assert!(matches!(
-        next[0].as_ref().and_then(|a| a.work.as_ref()),
-        Some(Work::Finish(_))
+        next[0].as_ref().map(|a| &a.work),
+        Some(Work::Finish)
     ));
 }
 
@@ -57,11 +54,9 @@ fn skipped_frames_past_the_job_limit_stop_the_job_naming_examples() {
 fn report_checksums(run: &mut Run, generation: u64, checksum_of: impl Fn(u64) -> u32) {
     for worker in run.workers.clone() {
         let report = StepReport {
-            worker_id: worker,
             generation,
             step: 0,
-            parameter_checksum: checksum_of(worker),
-            checksum_computed: true,
+            checksum: Some(checksum_of(worker)),
             ..StepReport::default()
         };
         run.state.report_step(worker, Phase::Stage1, &report);
@@ -143,5 +138,31 @@ fn a_corrupt_newest_commit_falls_back_to_the_one_before_without_blame() {
     );
     run.now += Duration::from_secs(2);
     let again = run.assign(generation);
-    assert_eq!(train(&again[0]).resume_from, "mem://stage1/2");
+    assert_eq!(
+        train(&again[0]).start,
+        TrainStart::Resume("mem://stage1/2".into())
+    );
+}
+
+#[test]
+fn a_store_outage_shows_in_the_status_for_as_long_as_it_lasts_and_blames_no_one() {
+    let mut run = Run::new(false, None);
+    let generation = run.assign(0)[0].as_ref().unwrap().generation;
+    assert_eq!(run.state.status(run.now).store_failing, None);
+    let w0 = run.workers[0];
+    assert!(
+        run.state
+            .store_failed(w0, generation, "upload refused", run.now)
+    );
+    run.now += Duration::from_secs(90);
+    let waiting = run.state.status(run.now);
+    assert_eq!(waiting.store_failing, Some(Duration::from_secs(90)));
+    let generation = run.assign(generation)[0].as_ref().unwrap().generation;
+    assert!(!run.commit(w0, Phase::Stage1, 2, generation));
+    assert_eq!(
+        run.state.status(run.now).store_failing,
+        None,
+        "a commit ends the outage"
+    );
+    assert!(run.state.report().exclusions.is_empty());
 }

@@ -25,11 +25,17 @@ fn a_lost_worker_ends_the_generation_and_the_survivor_resumes_from_the_last_comm
     );
     run.workers = vec![w0];
     assert!(run.assign(generation)[0].is_none(), "the grace period runs");
+    assert_eq!(
+        run.state.status(run.now).generation,
+        generation,
+        "no group formed, so no generation began"
+    );
     run.now += Duration::from_secs(2);
     let again = run.assign(generation);
     let resumed = train(&again[0]);
-    assert_eq!(resumed.world_size, 1);
-    assert_eq!(resumed.resume_from, "mem://stage1/2");
+    assert_eq!(resumed.world_size(), 1);
+    assert_eq!(resumed.start, TrainStart::Resume("mem://stage1/2".into()));
+    assert_eq!(again[0].as_ref().unwrap().generation, generation + 1);
 }
 
 #[test]
@@ -69,7 +75,7 @@ fn a_member_stuck_in_its_step_while_its_peer_waits_is_removed_and_sits_out() {
     run.now += Duration::from_secs(2);
     let regrouped = run.assign(generation);
     assert_eq!(
-        train(&regrouped[0]).world_size,
+        train(&regrouped[0]).world_size(),
         1,
         "the stuck worker's address sits out"
     );
@@ -134,8 +140,8 @@ fn a_failed_final_commit_ends_the_generation_and_the_stage_resumes_from_the_last
     run.now += Duration::from_secs(2);
     let again = run.assign(generation);
     let resumed = train(&again[0]);
-    assert_eq!(resumed.resume_from, "mem://stage1/2");
-    assert_eq!(resumed.world_size, 1);
+    assert_eq!(resumed.start, TrainStart::Resume("mem://stage1/2".into()));
+    assert_eq!(resumed.world_size(), 1);
 }
 
 #[test]
@@ -177,7 +183,7 @@ fn a_late_joiner_enters_at_the_next_commit_without_a_restart() {
     run.now += Duration::from_secs(2);
     let alone = run.assign(generation);
     let generation = alone[0].as_ref().unwrap().generation;
-    assert_eq!(train(&alone[0]).world_size, 1);
+    assert_eq!(train(&alone[0]).world_size(), 1);
     let joiner = run
         .state
         .register("w9".into(), "127.0.0.1:7009".into(), run.now);
@@ -191,8 +197,12 @@ fn a_late_joiner_enters_at_the_next_commit_without_a_restart() {
     assert!(!run.commit(w0, Phase::Stage1, 2, generation));
     let grown = run.assign(generation);
     let (first, second) = (train(&grown[0]), train(&grown[1]));
-    assert_eq!((first.world_size, second.world_size), (2, 2));
-    assert_eq!(first.resume_from, "mem://stage1/2", "nothing is redone");
+    assert_eq!((first.world_size(), second.world_size()), (2, 2));
+    assert_eq!(
+        first.start,
+        TrainStart::Resume("mem://stage1/2".into()),
+        "nothing is redone"
+    );
     assert_eq!(
         run.state.report().restarts,
         1,

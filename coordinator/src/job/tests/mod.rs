@@ -7,8 +7,7 @@
 
 use std::time::{Duration, Instant};
 
-use proto::v1::assignment::Work;
-use proto::v1::{EvaluateAssignment, LossTerms, StepReport, TrainAssignment};
+use settings::work::{EvaluateWork, StepLoss, StepReport, TrainStart, TrainWork, Work};
 
 use super::*;
 use crate::config::ClusterConfig;
@@ -119,12 +118,11 @@ impl Run {
 
     fn step(&mut self, worker: u64, phase: Phase, step: u64, generation: u64) -> bool {
         let report = StepReport {
-            worker_id: worker,
             generation,
             step,
-            loss: Some(LossTerms {
+            loss: Some(StepLoss {
                 total: 0.5,
-                ..LossTerms::default()
+                ..StepLoss::default()
             }),
             ..StepReport::default()
         };
@@ -133,16 +131,16 @@ impl Run {
 }
 
 /// The training work of `assignment`; panics naming what came instead.
-fn train(assignment: &Option<Assignment>) -> &TrainAssignment {
-    match assignment.as_ref().and_then(|a| a.work.as_ref()) {
+fn train(assignment: &Option<Assignment>) -> &TrainWork {
+    match assignment.as_ref().map(|a| &a.work) {
         Some(Work::Train(train)) => train,
         other => panic!("expected a training assignment, got {other:?}"),
     }
 }
 
 /// The evaluation work of `assignment`; panics naming what came instead.
-fn evaluation(assignment: &Option<Assignment>) -> &EvaluateAssignment {
-    match assignment.as_ref().and_then(|a| a.work.as_ref()) {
+fn evaluation(assignment: &Option<Assignment>) -> &EvaluateWork {
+    match assignment.as_ref().map(|a| &a.work) {
         Some(Work::Evaluate(evaluate)) => evaluate,
         other => panic!("expected an evaluation, got {other:?}"),
     }

@@ -11,12 +11,12 @@ fn a_job_goes_through_stage1_stage2_evaluation_and_finishes() {
     let generation = first[0].as_ref().unwrap().generation;
     assert_eq!(generation, BASE + 1);
     let (rank0, rank1) = (train(&first[0]), train(&first[1]));
-    assert_eq!((rank0.rank, rank1.rank, rank0.world_size), (0, 1, 2));
-    assert_eq!(rank0.phase, proto::v1::Phase::Stage1 as i32);
-    assert!(rank0.resume_from.is_empty() && rank0.init_weights_from.is_empty());
+    assert_eq!((rank0.rank, rank1.rank, rank0.world_size()), (0, 1, 2));
+    assert_eq!(rank0.stage, Phase::Stage1);
+    assert_eq!(rank0.start, TrainStart::Fresh);
     assert_eq!(rank0.checkpoint_prefix, "/tmp/unit-ckpt/stage1");
     assert_eq!(rank0.total_steps, 4);
-    assert!(rank0.model.is_some() && rank0.train.is_some() && rank0.data.is_some());
+    assert_eq!(rank0.model, run.state.plan().model);
 
     let w0 = run.workers[0];
     assert!(run.step(w0, Phase::Stage1, 0, generation));
@@ -32,8 +32,11 @@ fn a_job_goes_through_stage1_stage2_evaluation_and_finishes() {
 
     let second = run.assign(generation);
     let stage2 = train(&second[0]);
-    assert_eq!(stage2.phase, proto::v1::Phase::Stage2 as i32);
-    assert_eq!(stage2.init_weights_from, "mem://stage1/4");
+    assert_eq!(stage2.stage, Phase::Stage2);
+    assert_eq!(
+        stage2.start,
+        TrainStart::InitWeights("mem://stage1/4".into())
+    );
     let generation = second[0].as_ref().unwrap().generation;
     assert!(run.commit(w0, Phase::Stage2, 2, generation), "stage 2 ends");
     assert_eq!(run.state.phase(), Phase::Evaluate);
@@ -42,7 +45,7 @@ fn a_job_goes_through_stage1_stage2_evaluation_and_finishes() {
     let evaluated: Vec<_> = third.iter().filter(|a| a.is_some()).collect();
     assert_eq!(evaluated.len(), 1, "one worker evaluates");
     let evaluate = evaluation(evaluated[0]);
-    let scored: Vec<(&str, u64)> = evaluate
+    let scored: Vec<(&str, usize)> = evaluate
         .checkpoints
         .iter()
         .map(|c| (c.weights.as_str(), c.context_views))
@@ -61,8 +64,8 @@ fn a_job_goes_through_stage1_stage2_evaluation_and_finishes() {
 
     let last = run.assign(generation);
     assert!(matches!(
-        last[0].as_ref().and_then(|a| a.work.as_ref()),
-        Some(Work::Finish(_))
+        last[0].as_ref().map(|a| &a.work),
+        Some(Work::Finish)
     ));
 }
 
@@ -122,8 +125,7 @@ fn a_saved_state_resumes_where_it_was_and_an_old_evaluation_state_counts_as_fini
     let mut run = Run::new(false, Some(saved));
     let resumed = run.assign(0);
     let stage2 = train(&resumed[0]);
-    assert_eq!(stage2.resume_from, "mem://stage2/1");
-    assert!(stage2.init_weights_from.is_empty());
+    assert_eq!(stage2.start, TrainStart::Resume("mem://stage2/1".into()));
 
     let old: Durable = serde_json::from_str(
         r#"{"job": "unit", "stage": 3, "last_commit": null, "stage1_final": "a"}"#,
@@ -141,8 +143,10 @@ fn init_weights_start_stage1_and_only_until_its_first_commit() {
     let generation = first[0].as_ref().unwrap().generation;
     for assignment in &first {
         let stage1 = train(assignment);
-        assert_eq!(stage1.init_weights_from, "s3://released/xfactor-2v");
-        assert!(stage1.resume_from.is_empty());
+        assert_eq!(
+            stage1.start,
+            TrainStart::InitWeights("s3://released/xfactor-2v".into())
+        );
     }
     let w0 = run.workers[0];
     assert!(!run.commit(w0, Phase::Stage1, 2, generation));
@@ -152,11 +156,13 @@ fn init_weights_start_stage1_and_only_until_its_first_commit() {
     run.now += Duration::from_secs(2);
     let regrouped = run.assign(generation);
     let resumed = train(&regrouped[0]);
-    assert_eq!(resumed.resume_from, "mem://stage1/2");
-    assert!(resumed.init_weights_from.is_empty(), "a commit wins");
+    assert_eq!(resumed.start, TrainStart::Resume("mem://stage1/2".into()));
     let generation = regrouped[0].as_ref().unwrap().generation;
     assert!(run.commit(w0, Phase::Stage1, 4, generation));
     let next = run.assign(generation);
     let stage2 = train(&next[0]);
-    assert_eq!(stage2.init_weights_from, "mem://stage1/4");
+    assert_eq!(
+        stage2.start,
+        TrainStart::InitWeights("mem://stage1/4".into())
+    );
 }
