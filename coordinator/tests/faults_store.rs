@@ -23,6 +23,15 @@ fn store_returns(running: Running, blocker: &std::path::Path) -> (serde_json::Va
     (report, stage1_after_return_s, exclusions)
 }
 
+/// Generations the coordinator's log says failed on the object store so far.
+fn store_failures(running: &Running) -> usize {
+    let log = running.job.dir.join("coordinator.log");
+    std::fs::read_to_string(&log)
+        .unwrap()
+        .matches("generation failed on the object store")
+        .count()
+}
+
 /// How long the store stays down.
 const DOWN: Duration = Duration::from_secs(60);
 
@@ -38,11 +47,7 @@ fn a_store_down_for_a_minute_benches_no_worker_and_the_job_goes_on_within_second
     );
     let down = Instant::now();
     std::thread::sleep(DOWN.saturating_sub(down.elapsed()));
-    let log = running.job.dir.join("coordinator.log");
-    let failures = std::fs::read_to_string(&log)
-        .unwrap()
-        .matches("generation failed on the object store")
-        .count();
+    let failures = store_failures(&running);
     let (report, stage1_after_return_s, exclusions) = store_returns(running, &blocker);
     println!(
         "fault=store_down down_s={:.0} store_failures={failures} stage1_committed_after_return_s={stage1_after_return_s:.1} restarts={} exclusions={exclusions}",
@@ -83,21 +88,10 @@ fn a_final_commit_refused_for_five_minutes_ends_no_worker_and_the_job_finishes()
     let first_failure = Instant::now();
     while first_failure.elapsed() < OUTAGE {
         std::thread::sleep(Duration::from_secs(5));
-        for (index, worker) in running.workers.iter_mut().enumerate() {
-            let status = worker.try_wait().unwrap();
-            assert!(
-                status.is_none(),
-                "worker {index} exited {:.0} s into the outage: {status:?}",
-                first_failure.elapsed().as_secs_f64()
-            );
-        }
+        assert_all_alive(&mut running, first_failure.elapsed().as_secs_f64());
     }
     let waiting = running.status_line();
-    let log = running.job.dir.join("coordinator.log");
-    let failures = std::fs::read_to_string(&log)
-        .unwrap()
-        .matches("generation failed on the object store")
-        .count();
+    let failures = store_failures(&running);
     let (report, stage1_after_return_s, exclusions) = store_returns(running, &blocker);
     println!(
         "fault=store_outage down_s={:.0} store_failures={failures} stage1_committed_after_return_s={stage1_after_return_s:.1} restarts={} exclusions={exclusions}",

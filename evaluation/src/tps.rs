@@ -289,15 +289,20 @@ mod tests {
     use crate::oracle::GroundTruthOracle;
     use data::scenes::SceneConfig;
 
-    #[test]
-    fn ground_truth_tps_is_perfect_for_itself_and_low_for_random_motion() {
+    /// 3 scenes x 4 paths of 9 frames, their ground-truth oracle, and 6 transfers.
+    fn three_scenes() -> (SyntheticDataset, GroundTruthOracle, Vec<TpsPair>) {
         let config = SceneConfig {
             image_size: 24,
             ..SceneConfig::default()
         };
         let dataset = SyntheticDataset::generate(2, 3, 4, 9, &config);
         let oracle = GroundTruthOracle::from_dataset(&dataset);
-        let pairs = draw_pairs(1, 3, 4, 6).unwrap();
+        (dataset, oracle, draw_pairs(1, 3, 4, 6).unwrap())
+    }
+
+    #[test]
+    fn ground_truth_tps_is_perfect_for_itself_and_low_for_random_motion() {
+        let (dataset, oracle, pairs) = three_scenes();
         assert!(
             pairs
                 .iter()
@@ -342,13 +347,7 @@ mod tests {
 
     #[test]
     fn a_renderer_that_returns_the_source_video_scores_no_transfer() {
-        let config = SceneConfig {
-            image_size: 24,
-            ..SceneConfig::default()
-        };
-        let dataset = SyntheticDataset::generate(2, 3, 4, 9, &config);
-        let oracle = GroundTruthOracle::from_dataset(&dataset);
-        let pairs = draw_pairs(1, 3, 4, 6).unwrap();
+        let (dataset, oracle, pairs) = three_scenes();
         let settings = TpsSettings {
             frames_per_pair: 5,
             context_views: 2,

@@ -150,8 +150,8 @@ fn the_evaluation_reports_each_protocol_dataset() {
     );
     let markdown = std::fs::read_to_string(out.join("report.md")).unwrap();
     assert!(
-        markdown.contains("| trained | re10k | 12 | 3 | 1 | 33 |"),
+        markdown.contains("| checkpoint, 1 context view(s) | trained | re10k | 12 | 3 | 1 | 33 |"),
         "{markdown}"
     );
-    assert!(out.join("trained_sequences_re10k.png").is_file());
+    assert!(out.join("checkpoint_trained_sequences_re10k.png").is_file());
 }

@@ -96,28 +96,17 @@ fn camera_table(report: &EvaluationReport, text: &mut String) {
                 camera_cells(&r.probe.metrics)
             );
         }
-        let b = &stage.baselines;
-        let _ = writeln!(
-            text,
-            "| {name} | no camera motion | TPS | {} |",
-            camera_cells(&b.tps_no_motion)
-        );
-        let _ = writeln!(
-            text,
-            "| {name} | no camera motion | probe | {} |",
-            camera_cells(&b.probe_no_motion)
-        );
-        let tps = &stage.trained.tps;
-        let _ = writeln!(
-            text,
-            "| {name} | oracle: true rendering | TPS | {} |",
-            camera_cells(&tps.ideal_transfer)
-        );
-        let _ = writeln!(
-            text,
-            "| {name} | oracle: unrelated motion | TPS | {} |",
-            camera_cells(&tps.unrelated_trajectory)
-        );
+        let (b, tps) = (&stage.baselines, &stage.trained.tps);
+        let references = [
+            ("no camera motion", "TPS", &b.tps_no_motion),
+            ("no camera motion", "probe", &b.probe_no_motion),
+            ("oracle: true rendering", "TPS", &tps.ideal_transfer),
+            ("oracle: unrelated motion", "TPS", &tps.unrelated_trajectory),
+        ];
+        for (model, measure, metrics) in references {
+            let cells = camera_cells(metrics);
+            let _ = writeln!(text, "| {name} | {model} | {measure} | {cells} |");
+        }
     }
     text.push_str("\nTransfers that copy the source video (most renders closer to the source's frames than to the target scene's) score as failed:\n\n| checkpoint | model | transfers | copied | renders copying the source | unreadable by the oracle |\n| --- | --- | --- | --- | --- | --- |\n");
     for stage in &report.stages {
