@@ -56,19 +56,36 @@ fn train_sequences(plan: &Plan) -> String {
         .to_string()
 }
 
-#[test]
-fn a_split_file_chooses_the_training_sequences() {
-    let dir = tempfile::tempdir().unwrap();
-    let rt = runtime();
+/// Writes 2 scenes x 2 paths of 10 frames at 32x32, drawn for split `drawn` from seed 2, into
+/// the RE10K split folders `folders` of a new root `dir/name`; returns the root's URI.
+fn write_generated(
+    rt: &tokio::runtime::Runtime,
+    dir: &std::path::Path,
+    name: &str,
+    drawn: data::Split,
+    folders: &[data::Split],
+) -> String {
     let scene = SceneConfig {
         image_size: 32,
         ..SceneConfig::default()
     };
-    let uri = dir.path().join("re10k").display().to_string();
+    let uri = dir.join(name).display().to_string();
     let root = DataRoot::create(&uri).unwrap();
-    let dataset = SyntheticDataset::generate(2, 2, 2, 10, &scene);
-    rt.block_on(dataset.write_re10k(&root, data::Split::Train, scene.fov_degrees))
-        .unwrap();
+    let dataset = SyntheticDataset::generate_split(2, drawn, 2, 2, 10, &scene);
+    for &folder in folders {
+        rt.block_on(dataset.write_re10k(&root, folder, scene.fov_degrees))
+            .unwrap();
+    }
+    uri
+}
+
+#[test]
+fn a_split_file_chooses_the_training_sequences() {
+    let dir = tempfile::tempdir().unwrap();
+    let rt = runtime();
+    let train = [data::Split::Train];
+    let uri = write_generated(&rt, dir.path(), "re10k", data::Split::Train, &train);
+    let root = DataRoot::open(&uri).unwrap();
     let (indexed, _) = rt
         .block_on(load_or_index(&root, DatasetKind::Re10k))
         .unwrap();
@@ -121,23 +138,10 @@ fn evaluate_yaml(seed: u64, sequences: &str) -> String {
 fn an_evaluation_that_reads_training_scenes_is_refused_naming_them() {
     let dir = tempfile::tempdir().unwrap();
     let rt = runtime();
-    let scene = SceneConfig {
-        image_size: 32,
-        ..SceneConfig::default()
-    };
-    let uri = dir.path().join("re10k").display().to_string();
-    let root = DataRoot::create(&uri).unwrap();
-    let dataset = SyntheticDataset::generate(2, 2, 2, 10, &scene);
+    let (train, test) = (data::Split::Train, data::Split::Test);
     // The same sequences in the train and the test folder: a test split that trains.
-    for split in [data::Split::Train, data::Split::Test] {
-        rt.block_on(dataset.write_re10k(&root, split, scene.fov_degrees))
-            .unwrap();
-    }
-    let held_out = dir.path().join("re10k-test").display().to_string();
-    let test_root = DataRoot::create(&held_out).unwrap();
-    let unseen = SyntheticDataset::generate_split(2, data::Split::Test, 2, 2, 10, &scene);
-    rt.block_on(unseen.write_re10k(&test_root, data::Split::Test, scene.fov_degrees))
-        .unwrap();
+    let uri = write_generated(&rt, dir.path(), "re10k", train, &[train, test]);
+    let held_out = write_generated(&rt, dir.path(), "re10k-test", test, &[test]);
     let plan = |evaluate: String| {
         let yaml = cluster_yaml(&uri, "") + &evaluate;
         let config = ClusterConfig::from_yaml(&yaml, "cluster.yaml").unwrap();
@@ -156,10 +160,7 @@ fn an_evaluation_that_reads_training_scenes_is_refused_naming_them() {
     plan(evaluate_yaml(2, &protocol(&held_out))).expect("held-out sequences are evaluated");
 
     // Training on the held-out draws themselves: the generated evaluation scenes are refused.
-    let leaked = dir.path().join("leaked").display().to_string();
-    let leaked_root = DataRoot::create(&leaked).unwrap();
-    rt.block_on(unseen.write_re10k(&leaked_root, data::Split::Train, scene.fov_degrees))
-        .unwrap();
+    let leaked = write_generated(&rt, dir.path(), "leaked", test, &[train]);
     let config = |seed| {
         let yaml = cluster_yaml(&leaked, "") + &evaluate_yaml(seed, "");
         ClusterConfig::from_yaml(&yaml, "cluster.yaml").unwrap()
