@@ -62,6 +62,13 @@ fn two_workers_run_both_stages_in_lockstep_then_one_evaluates() {
         .map(|s| s["checkpoint"]["label"].as_str().unwrap_or("?"))
         .collect();
     assert_eq!(labels, ["stage1", "stage2"], "both stages' final weights");
+    let departures = numbers["departures"].as_array().expect("departures");
+    assert!(
+        departures.iter().any(|d| d
+            .as_str()
+            .is_some_and(|d| d.starts_with("data: generated scenes"))),
+        "the job's own departures reach the report: {departures:?}"
+    );
     for stage in stages {
         assert_eq!(
             stage["checkpoint"]["weights"]

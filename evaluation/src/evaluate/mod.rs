@@ -301,6 +301,7 @@ fn departures(spec: &EvaluationSpec) -> Vec<String> {
     if spec.tps_frames != 5 {
         notes.push(format!("tps_frames: {} (the paper: 5)", spec.tps_frames));
     }
+    notes.extend(spec.notes.iter().cloned());
     notes
 }
 
@@ -401,10 +402,19 @@ mod tests {
             serde_json::from_str(&serde_json::to_string(&spec).unwrap()).unwrap();
         assert_eq!(back, spec);
         assert!(serde_json::from_str::<EvaluationSpec>(r#"{"scene": 4}"#).is_err());
-        let notes = departures(&spec);
+        let noted = EvaluationSpec {
+            notes: vec!["stage 2 keeps stage 1's Render".into()],
+            ..spec
+        };
+        let notes = departures(&noted);
         assert!(
             notes.iter().any(|n| n.contains("probe: 10 steps")),
             "{notes:?}"
+        );
+        assert_eq!(
+            notes.last().map(String::as_str),
+            Some("stage 2 keeps stage 1's Render"),
+            "the job's notes come last"
         );
     }
 }
