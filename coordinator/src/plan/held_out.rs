@@ -6,7 +6,7 @@
 use std::collections::BTreeSet;
 
 use data::Split;
-use data::cache::load_or_index;
+use data::index::index as index_tree;
 use data::store::DataRoot;
 use data::synthetic::{scene_name, scene_of_sequence_id};
 use settings::evaluation::EvaluationSpec;
@@ -90,14 +90,16 @@ async fn protocol_overlap(
         uri: uri.clone(),
         source,
     })?;
-    let (indexed, _) = load_or_index(&root, protocol.kind)
-        .await
-        .map_err(|source| PlanError::EvaluationIndex {
-            index,
-            kind,
-            uri,
-            source,
-        })?;
+    // Indexed without writing a manifest cache: an evaluation dataset may be read-only.
+    let indexed =
+        index_tree(&root, protocol.kind)
+            .await
+            .map_err(|source| PlanError::EvaluationIndex {
+                index,
+                kind,
+                uri,
+                source,
+            })?;
     let (evaluated, _) = indexed
         .manifest
         .evaluated_test_sequences(protocol.length, protocol.count);

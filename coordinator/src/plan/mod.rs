@@ -2,6 +2,7 @@
 //! indexed through their manifest caches), and how the expected workers split the data.
 
 use data::cache::CacheError;
+use data::index::IndexError;
 use data::split::SplitError;
 use data::store::StoreError;
 use settings::Phase;
@@ -86,7 +87,7 @@ pub enum PlanError {
         uri: String,
         /// What failed.
         #[source]
-        source: CacheError,
+        source: IndexError,
     },
     /// The evaluation would score scenes the training data holds.
     #[error(

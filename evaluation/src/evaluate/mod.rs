@@ -240,7 +240,7 @@ pub fn run_evaluation(
         .first()
         .ok_or_else(|| EvalError::Invalid("no checkpoint to evaluate".to_string()))?;
     std::fs::create_dir_all(out_dir).map_err(|e| io_error(out_dir, e))?;
-    let (_, config) = checkpoint::load(&first.weights, device)?;
+    let config = checkpoint::read_config(&first.weights)?;
     let context = build_context(spec, &config, device, out_dir)?;
     let mut figures = Vec::new();
     let mut stages = Vec::with_capacity(checkpoints.len());
