@@ -15,6 +15,41 @@ use serde_json::Value;
 use tempfile::TempDir;
 use trainer_core::flax::FlaxTensors;
 
+/// The evaluation report scores stage 1's and stage 2's final weights, each model's figures
+/// and the copy baseline are numbers, and the job's own departures reach it.
+fn assert_scores_both_stages(numbers: &Value) {
+    let stages = numbers["stages"].as_array().expect("scored stages");
+    let labels: Vec<&str> = stages
+        .iter()
+        .map(|s| s["checkpoint"]["label"].as_str().unwrap_or("?"))
+        .collect();
+    assert_eq!(labels, ["stage1", "stage2"], "both stages' final weights");
+    let departures = numbers["departures"].as_array().expect("departures");
+    assert!(
+        departures.iter().any(|d| d
+            .as_str()
+            .is_some_and(|d| d.starts_with("data: generated scenes"))),
+        "the job's own departures reach the report: {departures:?}"
+    );
+    for stage in stages {
+        assert_eq!(
+            stage["checkpoint"]["weights"]
+                .as_str()
+                .map(|c| c.ends_with("model.safetensors")),
+            Some(true)
+        );
+        for model in ["trained", "untrained"] {
+            let numbers = &stage[model];
+            let psnr = numbers["reconstruction"]["psnr"].as_f64().unwrap();
+            assert!(psnr.is_finite() && psnr > 0.0, "{model} psnr {psnr}");
+            assert!(numbers["tps"]["model"]["pairs"].as_u64().unwrap() > 0);
+            assert!(numbers["probe"]["metrics"]["pairs"].as_u64().unwrap() > 0);
+        }
+        let copy = stage["baselines"]["copy"]["psnr"].as_f64().unwrap();
+        assert!(copy.is_finite() && copy > 0.0, "copy baseline psnr {copy}");
+    }
+}
+
 #[test]
 fn two_workers_run_both_stages_in_lockstep_then_one_evaluates() {
     let dir = tempfile::tempdir().unwrap();
@@ -56,36 +91,7 @@ fn two_workers_run_both_stages_in_lockstep_then_one_evaluates() {
     assert!(evaluation.starts_with(dir.path().join("checkpoints/evaluation")));
     let numbers: Value =
         serde_json::from_slice(&std::fs::read(evaluation.join("report.json")).unwrap()).unwrap();
-    let stages = numbers["stages"].as_array().expect("scored stages");
-    let labels: Vec<&str> = stages
-        .iter()
-        .map(|s| s["checkpoint"]["label"].as_str().unwrap_or("?"))
-        .collect();
-    assert_eq!(labels, ["stage1", "stage2"], "both stages' final weights");
-    let departures = numbers["departures"].as_array().expect("departures");
-    assert!(
-        departures.iter().any(|d| d
-            .as_str()
-            .is_some_and(|d| d.starts_with("data: generated scenes"))),
-        "the job's own departures reach the report: {departures:?}"
-    );
-    for stage in stages {
-        assert_eq!(
-            stage["checkpoint"]["weights"]
-                .as_str()
-                .map(|c| c.ends_with("model.safetensors")),
-            Some(true)
-        );
-        for model in ["trained", "untrained"] {
-            let numbers = &stage[model];
-            let psnr = numbers["reconstruction"]["psnr"].as_f64().unwrap();
-            assert!(psnr.is_finite() && psnr > 0.0, "{model} psnr {psnr}");
-            assert!(numbers["tps"]["model"]["pairs"].as_u64().unwrap() > 0);
-            assert!(numbers["probe"]["metrics"]["pairs"].as_u64().unwrap() > 0);
-        }
-        let copy = stage["baselines"]["copy"]["psnr"].as_f64().unwrap();
-        assert!(copy.is_finite() && copy > 0.0, "copy baseline psnr {copy}");
-    }
+    assert_scores_both_stages(&numbers);
     let markdown = std::fs::read_to_string(evaluation.join("report.md")).unwrap();
     assert!(markdown.contains('|'), "{markdown}");
     let figures = std::fs::read_dir(evaluation)
