@@ -10,5 +10,5 @@ pub use camera::{
     CameraMetrics, PairError, THRESHOLDS, ThresholdScores, pair_error, trajectory_errors,
 };
 pub use image::{ImageMetricError, ReconstructionReport, psnr, ssim};
-pub use spread::{CameraSpread, bootstrap_spread, camera_spread, mean_with_spread};
+pub use spread::{CameraSpread, bootstrap_spread, camera_spread};
 pub use trajectory::{TrajectoryError, trajectory_error};

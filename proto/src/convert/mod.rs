@@ -24,7 +24,7 @@ pub use device::{
     device_from_wire, device_in_use_from_wire, device_in_use_to_wire, device_to_wire,
     reported_device, worker_line,
 };
-pub use progress::{activity_from_wire, activity_to_wire};
+pub use progress::activity_from_wire;
 pub use work::{devices_from_wire, devices_to_wire};
 
 /// A message that cannot become its settings type.

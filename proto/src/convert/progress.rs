@@ -1,20 +1,10 @@
-//! What a worker says about its progress, between its wire form and `settings::work`'s domain
+//! What a worker says about its progress, read from the wire into `settings::work`'s domain
 //! types: its activity within a step (heartbeats) and its report of a finished step.
 
 use settings::work::{Activity, StepLoss, StepReport};
 
 use super::ConvertError;
 use crate::v1;
-
-/// The wire value of an activity.
-pub fn activity_to_wire(activity: Activity) -> v1::Activity {
-    match activity {
-        Activity::Idle => v1::Activity::Idle,
-        Activity::Computing => v1::Activity::Computing,
-        Activity::Allreduce => v1::Activity::Allreduce,
-        Activity::Committing => v1::Activity::Committing,
-    }
-}
 
 /// An activity from its wire value; `field` names it in the error.
 pub fn activity_from_wire(value: i32, field: &'static str) -> Result<Activity, ConvertError> {
@@ -58,15 +48,14 @@ mod tests {
     use super::*;
 
     #[test]
-    fn activities_survive_the_wire_and_unknown_ones_are_named() {
-        for activity in [
-            Activity::Idle,
-            Activity::Computing,
-            Activity::Allreduce,
-            Activity::Committing,
+    fn activities_are_read_from_the_wire_and_unknown_ones_are_named() {
+        for (wire, activity) in [
+            (v1::Activity::Idle, Activity::Idle),
+            (v1::Activity::Computing, Activity::Computing),
+            (v1::Activity::Allreduce, Activity::Allreduce),
+            (v1::Activity::Committing, Activity::Committing),
         ] {
-            let wire = activity_to_wire(activity) as i32;
-            assert_eq!(activity_from_wire(wire, "a"), Ok(activity));
+            assert_eq!(activity_from_wire(wire as i32, "a"), Ok(activity));
         }
         assert_eq!(
             activity_from_wire(42, "heartbeat.activity"),
