@@ -1,5 +1,6 @@
 //! XFactor's two networks in burn, computing what the authors' JAX release computes.
 
+mod attention;
 mod camera;
 mod init;
 mod layers;
@@ -10,6 +11,7 @@ mod precision;
 mod render;
 mod rope;
 
+pub use attention::{SoftmaxAttention, op_by_op_attention, softmax_attention};
 pub use camera::{REFERENCE_FOCAL, plucker_tokens, rotation_columns};
 pub use init::ParamInit;
 pub use layers::{Dense, LayerNorm, LayerScale, Mlp2, Mlp3, RmsNorm, gelu_tanh};

@@ -5,6 +5,7 @@ use burn::module::{Module, Param};
 use burn::tensor::Tensor;
 use burn::tensor::module::linear;
 
+use super::attention::softmax_attention;
 use super::init::ParamInit;
 use super::layers::{Dense, LayerNorm, LayerScale, Mlp2, RmsNorm, gelu_tanh, rms_normalize};
 use super::precision;
@@ -48,25 +49,6 @@ impl SegmentMasks {
             per_view: Some(bias(segments.reshape([b * v, t]))),
         }
     }
-}
-
-/// Softmax attention with scale `1/sqrt(d)` over `(batch, heads, tokens, d)` inputs, restricted
-/// by an additive bias.
-///
-/// Written out rather than calling burn's fused op because autodiff decomposes that one anyway;
-/// here the scale is applied to the `N x d` queries instead of the `N x N` scores, and the
-/// softmax shift (which has zero gradient) is detached, saving full passes over the scores.
-fn attend(q: Tensor<4>, k: Tensor<4>, v: Tensor<4>, bias: Option<&Tensor<4>>) -> Tensor<4> {
-    let head_dim = q.dims()[3];
-    let scores = (q * (1.0 / (head_dim as f64).sqrt())).matmul(k.swap_dims(2, 3));
-    let scores = match bias {
-        Some(bias) => scores + bias.clone(),
-        None => scores,
-    };
-    let shift = scores.clone().max_dim(3).detach();
-    let weights = (scores - shift).exp();
-    let normaliser = weights.clone().sum_dim(3).recip();
-    (weights * normaliser).matmul(v)
 }
 
 /// One multi-view transformer layer (see SPEC "Multi-view layer").
@@ -155,7 +137,7 @@ impl MultiViewLayer {
         let part = |index: usize| queries_keys.clone().narrow(3, index, 1);
 
         let global_heads = |x: Tensor<6>| self.round(x.reshape([b, v * t, h, d]).swap_dims(1, 2));
-        let global = attend(
+        let global = softmax_attention(
             global_heads(part(0)),
             global_heads(part(1)),
             global_heads(values.reshape([b, v, t, 1, h, d])),
@@ -165,7 +147,7 @@ impl MultiViewLayer {
         .reshape([b, v, t, c]);
 
         let view_heads = |x: Tensor<6>| self.round(x.reshape([b * v, t, h, d]).swap_dims(1, 2));
-        let per_view = attend(
+        let per_view = softmax_attention(
             view_heads(part(2)),
             view_heads(part(3)),
             view_heads(view_values.reshape([b, v, t, 1, h, d])),

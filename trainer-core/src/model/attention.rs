@@ -1,0 +1,203 @@
+//! Softmax attention whose backward pass keeps no `N x N` matrix between the forward and the
+//! backward pass (issue 33: the scores, weights and products the autodiff graph kept per
+//! attention were most of a step's device memory).
+//!
+//! The forward pass is burn's `attention` op on each backend (flash kernels on cubecl devices
+//! where no bias is given, burn-flex's tiled kernel on the CPU); under autodiff it records one
+//! node that keeps only `q`, `k`, `v` and the bias, and its backward pass recomputes the weights
+//! from them, one attention at a time, as flash attention's backward does.
+
+use burn::backend::autodiff::checkpoint::base::Checkpointer;
+use burn::backend::autodiff::checkpoint::strategy::CheckpointStrategy;
+use burn::backend::autodiff::grads::Gradients;
+use burn::backend::autodiff::ops::{Backward, Ops, OpsKind};
+use burn::backend::ops::AttentionModuleOptions;
+use burn::backend::tensor::FloatTensor;
+use burn::backend::{Autodiff, Backend, Cube, Dispatch, Flex, backend_extension};
+use burn::tensor::Tensor;
+
+/// Attention as one differentiable op on every backend the trainer runs on, over
+/// `(batch, heads, tokens, d)` inputs. Two methods rather than an optional bias: the extension
+/// macro routes tensors, not options of them.
+#[backend_extension(Autodiff, Cube: cfg(all()), Flex: cfg(all()), LibTorch: cfg(feature = "libtorch"))]
+pub trait SoftmaxAttention: Backend {
+    /// `softmax(q kᵀ / sqrt(d)) v`.
+    fn softmax_attention(
+        q: FloatTensor<Self>,
+        k: FloatTensor<Self>,
+        v: FloatTensor<Self>,
+    ) -> FloatTensor<Self> {
+        Self::attention(q, k, v, None, None, AttentionModuleOptions::default())
+    }
+
+    /// `softmax(q kᵀ / sqrt(d) + bias) v`; `bias` `(batch, 1, tokens, tokens)` is broadcast
+    /// over heads.
+    fn biased_softmax_attention(
+        q: FloatTensor<Self>,
+        k: FloatTensor<Self>,
+        v: FloatTensor<Self>,
+        bias: FloatTensor<Self>,
+    ) -> FloatTensor<Self> {
+        Self::attention(q, k, v, None, Some(bias), AttentionModuleOptions::default())
+    }
+}
+
+impl SoftmaxAttention for Cube {}
+impl SoftmaxAttention for Flex {}
+#[cfg(feature = "libtorch")]
+impl SoftmaxAttention for burn::backend::LibTorch {}
+
+/// The backward pass of [`SoftmaxAttention`]: its state is the inputs, not the weights.
+#[derive(Debug)]
+struct AttentionBackward;
+
+impl<B: Backend> Backward<B, 3> for AttentionBackward {
+    type State = (
+        FloatTensor<B>,
+        FloatTensor<B>,
+        FloatTensor<B>,
+        Option<FloatTensor<B>>,
+    );
+
+    fn backward(self, ops: Ops<Self::State, 3>, grads: &mut Gradients, _: &mut Checkpointer) {
+        let [node_q, node_k, node_v] = ops.parents;
+        let grad_out = grads.consume::<B>(&ops.node);
+        let (q, k, v, bias) = ops.state;
+        let scale = scale_of::<B>(&q);
+        let weights = softmax_weights::<B>(q.clone(), k.clone(), bias, scale);
+        if let Some(node) = node_v {
+            let grad_v = B::float_matmul(B::float_transpose(weights.clone()), grad_out.clone());
+            grads.register::<B>(node.id, grad_v);
+        }
+        // dS = P ∘ (dP − rowsum(P ∘ dP)), with dP = dO vᵀ: the softmax's Jacobian applied to
+        // dP; rowsum(P ∘ dP) equals rowsum(dO ∘ O), so the output need not be kept.
+        let grad_weights = B::float_matmul(grad_out, B::float_transpose(v));
+        let row_dot = B::float_sum_dim(B::float_mul(weights.clone(), grad_weights.clone()), 3);
+        let grad_scores = B::float_mul(weights, B::float_sub(grad_weights, row_dot));
+        if let Some(node) = node_q {
+            let grad_q = B::float_matmul(grad_scores.clone(), k);
+            grads.register::<B>(node.id, B::float_mul_scalar(grad_q, scale.into()));
+        }
+        if let Some(node) = node_k {
+            let grad_k = B::float_matmul(B::float_transpose(grad_scores), q);
+            grads.register::<B>(node.id, B::float_mul_scalar(grad_k, scale.into()));
+        }
+    }
+}
+
+/// `1 / sqrt(d)` for queries of head size `d`.
+fn scale_of<B: Backend>(q: &FloatTensor<B>) -> f64 {
+    let head_dim = burn::backend::TensorMetadata::shape(q)[3];
+    1.0 / (head_dim as f64).sqrt()
+}
+
+/// The attention weights `softmax(q kᵀ · scale + bias)` over the last axis, shifted by the row
+/// maximum so that `exp` cannot overflow.
+fn softmax_weights<B: Backend>(
+    q: FloatTensor<B>,
+    k: FloatTensor<B>,
+    bias: Option<FloatTensor<B>>,
+    scale: f64,
+) -> FloatTensor<B> {
+    let scores = B::float_matmul(B::float_mul_scalar(q, scale.into()), B::float_transpose(k));
+    let scores = match bias {
+        Some(bias) => B::float_add(scores, bias),
+        None => scores,
+    };
+    let shift = B::float_max_dim(scores.clone(), 3);
+    let exponentials = B::float_exp(B::float_sub(scores, shift));
+    let normaliser = B::float_sum_dim(exponentials.clone(), 3);
+    B::float_div(exponentials, normaliser)
+}
+
+impl<B: Backend, C: CheckpointStrategy> SoftmaxAttention for Autodiff<B, C> {
+    fn softmax_attention(
+        q: FloatTensor<Self>,
+        k: FloatTensor<Self>,
+        v: FloatTensor<Self>,
+    ) -> FloatTensor<Self> {
+        differentiable_attention::<B, C>(q, k, v, None)
+    }
+
+    fn biased_softmax_attention(
+        q: FloatTensor<Self>,
+        k: FloatTensor<Self>,
+        v: FloatTensor<Self>,
+        bias: FloatTensor<Self>,
+    ) -> FloatTensor<Self> {
+        differentiable_attention::<B, C>(q, k, v, Some(bias.into_primitive()))
+    }
+}
+
+/// burn's attention on `B` recorded as one autodiff node whose state is the inputs. The bias is
+/// a constant (segment masks), so it gets no gradient.
+fn differentiable_attention<B: Backend, C: CheckpointStrategy>(
+    q: FloatTensor<Autodiff<B, C>>,
+    k: FloatTensor<Autodiff<B, C>>,
+    v: FloatTensor<Autodiff<B, C>>,
+    bias: Option<FloatTensor<B>>,
+) -> FloatTensor<Autodiff<B, C>> {
+    let options = AttentionModuleOptions::default();
+    match AttentionBackward
+        .prepare::<C>([q.node(), k.node(), v.node()])
+        .compute_bound()
+        .stateful()
+    {
+        OpsKind::Tracked(prep) => {
+            let (q, k, v) = (q.into_primitive(), k.into_primitive(), v.into_primitive());
+            let state = (q.clone(), k.clone(), v.clone(), bias.clone());
+            prep.finish(state, B::attention(q, k, v, None, bias, options))
+        }
+        OpsKind::UnTracked(prep) => prep.finish(B::attention(
+            q.into_primitive(),
+            k.into_primitive(),
+            v.into_primitive(),
+            None,
+            bias,
+            options,
+        )),
+    }
+}
+
+/// [`SoftmaxAttention`] on tensors: `softmax(q kᵀ / sqrt(d) + bias) v`, `(B, h, N, d)` inputs,
+/// `bias` `(B, 1, N, N)` (`0` where allowed, `-inf` where not) broadcast over heads.
+pub fn softmax_attention(
+    q: Tensor<4>,
+    k: Tensor<4>,
+    v: Tensor<4>,
+    bias: Option<&Tensor<4>>,
+) -> Tensor<4> {
+    let (q, k, v) = (q.into_dispatch(), k.into_dispatch(), v.into_dispatch());
+    Tensor::from_dispatch(match bias {
+        Some(bias) => <Dispatch as SoftmaxAttention>::biased_softmax_attention(
+            q,
+            k,
+            v,
+            bias.clone().into_dispatch(),
+        ),
+        None => <Dispatch as SoftmaxAttention>::softmax_attention(q, k, v),
+    })
+}
+
+/// The same attention written out op by op, each op differentiated by burn's autodiff, which
+/// keeps the scores and weights of every attention until the backward pass: what the model ran
+/// before [`SoftmaxAttention`], and the reference its tests and `benches/attention_step.rs`
+/// hold it to.
+pub fn op_by_op_attention(
+    q: Tensor<4>,
+    k: Tensor<4>,
+    v: Tensor<4>,
+    bias: Option<&Tensor<4>>,
+) -> Tensor<4> {
+    let head_dim = q.dims()[3];
+    let scores = (q * (1.0 / (head_dim as f64).sqrt())).matmul(k.swap_dims(2, 3));
+    let scores = match bias {
+        Some(bias) => scores + bias.clone(),
+        None => scores,
+    };
+    burn::tensor::activation::softmax(scores, 3).matmul(v)
+}
+
+#[cfg(test)]
+#[path = "attention_tests.rs"]
+mod tests;
