@@ -7,7 +7,8 @@
 #            default xfactor-worker
 #   gpu      the step benchmark and xfactor-worker built with `vulkan,cuda` (SPIR-V, and CUDA
 #            with kernels compiled by NVRTC at run time; no libtorch, so it loads on any host);
-#            its worker replaces the default one in the folder
+#            its worker replaces the default one in the folder (and in the target folder: it
+#            loads on any host, and is the build CI tests: XFACTOR_FEATURES=vulkan,cuda)
 #   roads    on request: the step benchmark of the `vulkan,libtorch,cuda` build CI tests
 #            (scripts/test-gpu-roads.sh); it loads PyTorch 2.9.0's libtorch
 # then the JAX reference and run.sh. A path that does not build is written to not-built.txt.
@@ -81,10 +82,6 @@ rm -f "$out/build.log"
 # The gpu build's benchmark runs cpu and wgpu too: one benchmark keeps the folder under 64 MiB.
 if [ -e "$out/model_step-gpu.gz" ]; then
     rm -f "$out/model_step-default.gz"
-fi
-# A feature build leaves its worker in the shared target folder: the default one goes back.
-if [[ ",$paths," == *,gpu,* ]]; then
-    cargo build --release -p worker --bin xfactor-worker
 fi
 cp tools/reference/xfactor_reference.py scripts/bench-gpu/run.sh "$out/"
 bytes=$(du -sb "$out" | cut -f1)

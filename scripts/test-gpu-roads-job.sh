@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # A real job on a GPU road chosen at run time: the coordinator and two worker processes on
 # loopback train both stages with `workers.device: vulkan` (SPIR-V on lavapipe here), using a
-# worker built with the vulkan and libtorch features. Passes when the job finishes and the
+# worker built with the vulkan feature. Passes when the job finishes and the
 # coordinator's `status` showed both workers on vulkan. Called by scripts/test-gpu-roads.sh.
 #   scripts/test-gpu-roads-job.sh WORKER-BINARY
 set -euo pipefail
