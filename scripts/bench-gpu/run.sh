@@ -117,9 +117,9 @@ why_failed() {
 
 # One measurement: our step (with the JAX peer when asked), as the bench's key=value line,
 # kept for the summary. Fails when it cannot run, runs out of memory or out of time.
-measure() { # backend model batch precision jax
+measure() { # backend model batch precision jax [compute]
     local bench limit args=(--backend "$1" --model "$2" --batch "$3" --precision "$4"
-        --steps "$steps" --skip-paper --reference "$here/xfactor_reference.py")
+        --compute "${6:-f32}" --steps "$steps" --skip-paper --reference "$here/xfactor_reference.py")
     bench=$(binary_for "$1" 2>/dev/null) || return 1
     [ "$1" = cpu ] || args+=(--shards 1)
     [ "$5" = jax ] || args+=(--skip-jax)
@@ -160,6 +160,15 @@ for model in "${models[@]}"; do
     done
 done
 
+# The bf16 speed mode (`model.compute: bf16`: products and attention in bf16 on tensor cores,
+# float32 weights and AdamW state) on the paper model, where the GPU roads run.
+if [ "$gpu" = 1 ]; then
+    for path in "${paths[@]}"; do
+        measure "$path" paper 8 f32 no bf16 >/dev/null ||
+            echo "backend=$path model=paper batch=8 compute=bf16 status=failed reason=\"$(why_failed)\""
+    done
+fi
+
 # The system, not only a step: a coordinator and two workers on the GPU for a few hundred steps.
 job_device=cpu
 [ "$gpu" = 1 ] && job_device=cuda
@@ -186,7 +195,7 @@ for line in open(sys.argv[1]):
     fields = dict(part.split("=", 1) for part in line.split() if "=" in part)
     if "step_s" in fields:
         rows.append([fields.get(k, "-") for k in (
-            "backend", "model", "precision", "batch", "step_s", "pairs_per_s", "jax_step_s",
+            "backend", "model", "precision", "compute", "batch", "step_s", "pairs_per_s", "jax_step_s",
             "vs_jax", "memory_pool_reserved_bytes", "memory_driver_process_used_bytes",
             "jax_peak_bytes_in_use")])
     elif "largest_batch" in fields:
@@ -194,7 +203,7 @@ for line in open(sys.argv[1]):
               f" (tried up to {fields['tried_up_to']})")
     elif line.startswith("job "):
         print("  " + line.strip())
-head = ["backend", "model", "prec", "batch", "step_s", "pairs/s", "jax_s", "ours/jax",
+head = ["backend", "model", "prec", "compute", "batch", "step_s", "pairs/s", "jax_s", "ours/jax",
         "pool_bytes", "driver_bytes", "jax_peak_bytes"]
 widths = [max(len(str(row[i])) for row in [head] + rows) for i in range(len(head))]
 for row in [head] + rows:

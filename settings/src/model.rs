@@ -38,6 +38,11 @@ pub struct XFactorConfig {
     /// optimizer's state stay float32 whatever this says.
     #[serde(default)]
     pub precision: Precision,
+    /// The type matrix products and attention compute in, as torch's autocast: `f32` (the
+    /// default, the parity reference), or a half type for speed on tensor cores. Weights,
+    /// gradients, the optimizer's state, norms, the softmax and the loss stay float32.
+    #[serde(default)]
+    pub compute: Precision,
 }
 
 /// The float type of the release's mixed-precision points: q/k/v before attention, and
@@ -142,6 +147,7 @@ impl XFactorConfig {
             round_qkv_bf16: false,
             pose_conditioning: PoseConditioning::Latent,
             precision: Precision::F32,
+            compute: Precision::F32,
         }
     }
 
@@ -160,6 +166,7 @@ impl XFactorConfig {
             round_qkv_bf16: false,
             pose_conditioning: PoseConditioning::Latent,
             precision: Precision::F32,
+            compute: Precision::F32,
         }
     }
 
@@ -179,6 +186,7 @@ impl XFactorConfig {
             round_qkv_bf16: false,
             pose_conditioning: PoseConditioning::Latent,
             precision: Precision::F32,
+            compute: Precision::F32,
         }
     }
 
@@ -197,6 +205,7 @@ impl XFactorConfig {
             round_qkv_bf16: false,
             pose_conditioning: PoseConditioning::Latent,
             precision: Precision::F32,
+            compute: Precision::F32,
         }
     }
 

@@ -39,6 +39,8 @@ struct Options {
     model: String,
     /// `f32`, or `bf16`/`f16`: the release's mixed precision in that half type.
     precision: String,
+    /// `f32`, or `bf16`/`f16`: the type products and attention compute in (`model.compute`).
+    compute: String,
     /// The JAX reference script (by default the checkout's).
     reference: String,
     /// Recompute activations in the backward pass instead of keeping them (burn's gradient
@@ -56,6 +58,7 @@ fn parse_options() -> Options {
         jax: true,
         model: "benchmark".into(),
         precision: "f32".into(),
+        compute: "f32".into(),
         reference: concat!(
             env!("CARGO_MANIFEST_DIR"),
             "/../tools/reference/xfactor_reference.py"
@@ -89,6 +92,7 @@ fn parse_options() -> Options {
             "--checkpointing" => options.checkpointing = true,
             "--model" => options.model = args.next().expect("--model benchmark|paper"),
             "--precision" => options.precision = args.next().expect("--precision f32|bf16|f16"),
+            "--compute" => options.compute = args.next().expect("--compute f32|bf16|f16"),
             "--reference" => options.reference = args.next().expect("--reference SCRIPT.py"),
             _ => {}
         }
@@ -270,23 +274,29 @@ fn figure(line: &str, key: &str) -> Option<f64> {
         .find_map(|pair| pair.strip_prefix(key)?.strip_prefix('=')?.parse().ok())
 }
 
+/// `f32`, `bf16` or `f16`, as `flag` spelled it.
+fn float_type(flag: &str, value: &str) -> Precision {
+    match value {
+        "f32" => Precision::F32,
+        "bf16" => Precision::Bf16,
+        "f16" => Precision::F16,
+        other => panic!("{flag} {other}: expected f32, bf16 or f16"),
+    }
+}
+
 /// The model the options ask for, at their precision (the release's mixed precision: its
-/// rounding points in the half type, float32 weights).
+/// rounding points in the half type, float32 weights) and compute type.
 fn model_config(options: &Options) -> (XFactorConfig, Precision) {
     let config = match options.model.as_str() {
         "benchmark" => XFactorConfig::benchmark(),
         "paper" => XFactorConfig::paper(),
         other => panic!("--model {other}: expected benchmark or paper"),
     };
-    let precision = match options.precision.as_str() {
-        "f32" => Precision::F32,
-        "bf16" => Precision::Bf16,
-        "f16" => Precision::F16,
-        other => panic!("--precision {other}: expected f32, bf16 or f16"),
-    };
+    let precision = float_type("--precision", &options.precision);
     (
         XFactorConfig {
             precision,
+            compute: float_type("--compute", &options.compute),
             ..config
         },
         precision,
@@ -377,10 +387,11 @@ fn main() {
     let step_s = steps[steps.len() / 2];
     let (param_bytes, optimizer_bytes) = training_bytes(model.num_params());
     let mut line = format!(
-        "backend={} model={} precision={} batch={} shards={} params={} param_bytes={param_bytes} optimizer_bytes={optimizer_bytes} warmup_step_s={warmup:.3} step_s={step_s:.3} min_step_s={:.3} pairs_per_s={:.2} checkpointing={}",
+        "backend={} model={} precision={} compute={} batch={} shards={} params={} param_bytes={param_bytes} optimizer_bytes={optimizer_bytes} warmup_step_s={warmup:.3} step_s={step_s:.3} min_step_s={:.3} pairs_per_s={:.2} checkpointing={}",
         options.backend.name(),
         options.model,
         precision.name(),
+        config.compute.name(),
         options.batch,
         options.shards,
         model.num_params(),

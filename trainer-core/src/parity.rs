@@ -126,6 +126,7 @@ impl FixtureConfig {
             round_qkv_bf16: false,
             pose_conditioning: settings::model::PoseConditioning::Latent,
             precision: settings::model::Precision::F32,
+            compute: settings::model::Precision::F32,
         };
         config.validate()?;
         Ok(config)

@@ -33,12 +33,15 @@ pub enum TrainError {
         "the objective weights LPIPS by {0} but no LPIPS weights were given: convert them with tools/convert_lpips_weights.py or set lpips_weight to 0"
     )]
     MissingLpips(f64),
-    /// The model's mixed precision needs a half type this device cannot compute in.
+    /// The model's mixed precision or compute type needs a half type this device cannot
+    /// compute in.
     #[error(
-        "the model's precision {precision} needs {precision} arithmetic, which this device does not have; use precision f32, or f16 where bf16 is storage-only"
+        "the model's {key} {precision} needs {precision} arithmetic, which this device does not have; use {key} f32, or f16 where bf16 is storage-only"
     )]
     Precision {
-        /// The precision asked for.
+        /// `precision` or `compute`: the key under `model:` that asks for it.
+        key: &'static str,
+        /// The half type asked for.
         precision: &'static str,
     },
     /// The batch sizes do not divide.
@@ -159,8 +162,13 @@ pub(crate) struct TrainerState {
     pub(crate) seed: u64,
 }
 
-/// Refuses a mixed precision whose half type `device` cannot compute in.
-fn check_precision(precision: Precision, device: &Device) -> Result<(), TrainError> {
+/// Refuses a mixed precision or compute type (`key`) whose half type `device` cannot compute
+/// in.
+fn check_precision(
+    key: &'static str,
+    precision: Precision,
+    device: &Device,
+) -> Result<(), TrainError> {
     let half = match precision {
         Precision::F32 => return Ok(()),
         Precision::Bf16 => FloatDType::BF16,
@@ -170,6 +178,7 @@ fn check_precision(precision: Precision, device: &Device) -> Result<(), TrainErr
         Ok(())
     } else {
         Err(TrainError::Precision {
+            key,
             precision: precision.name(),
         })
     }
@@ -203,7 +212,8 @@ impl Trainer {
         if weight == 0.0 {
             tracing::info!("LPIPS weight is 0: training with the L1 loss alone");
         }
-        check_precision(model_config.precision, device)?;
+        check_precision("precision", model_config.precision, device)?;
+        check_precision("compute", model_config.compute, device)?;
         if config.micro_batch == 0
             || config.global_batch == 0
             || !config.global_batch.is_multiple_of(config.micro_batch)

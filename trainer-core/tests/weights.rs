@@ -67,6 +67,7 @@ fn wrong_and_missing_tensors_are_named_with_both_shapes() {
         round_qkv_bf16: false,
         pose_conditioning: settings::model::PoseConditioning::Latent,
         precision: settings::model::Precision::F32,
+        compute: settings::model::Precision::F32,
     };
     let model = XFactor::new(&config, 0, &Device::flex()).unwrap();
     let message = load_flax(model, &tensors, PARAMS_PREFIX)

@@ -44,6 +44,10 @@ pub struct ModelConfig {
     /// rounding points in that half type, with float32 weights and optimizer state.
     #[serde(default)]
     pub precision: Precision,
+    /// The type products and attention compute in (`f32`, the default; `bf16` or `f16` for
+    /// speed on tensor cores, as torch's autocast), with float32 weights and optimizer state.
+    #[serde(default)]
+    pub compute: Precision,
 }
 
 /// The model sizes a job can name.
@@ -73,6 +77,7 @@ impl ModelConfig {
             global_tokens: None,
             round_qkv_bf16: false,
             precision: Precision::F32,
+            compute: Precision::F32,
         }
     }
 
@@ -101,6 +106,7 @@ impl ModelConfig {
         }
         config.round_qkv_bf16 = self.round_qkv_bf16;
         config.precision = self.precision;
+        config.compute = self.compute;
         config.pose_conditioning = conditioning;
         if conditioning == PoseConditioning::PluckerRays && self.pose_dim.is_none() {
             config.pose_dim = CAMERA_VECTOR_VALUES;

@@ -363,3 +363,19 @@ fn precision_and_devices_are_read_and_a_bad_device_set_is_named() {
     let bad = error_of(&GOOD.replace("  image_size: 32\n", "  image_size: 32\n  precision: f8\n"));
     assert!(bad.contains("model.precision"), "{bad}");
 }
+
+#[test]
+fn the_compute_type_is_read_defaults_to_f32_and_a_bad_one_is_named() {
+    let yaml = GOOD.replace("  image_size: 32\n", "  image_size: 32\n  compute: bf16\n");
+    let config = ClusterConfig::from_yaml(&yaml, "cluster.yaml").unwrap();
+    let model = config.model_config().unwrap();
+    assert_eq!(model.compute, settings::model::Precision::Bf16);
+    assert_eq!(model.precision, settings::model::Precision::F32);
+    let defaults = ClusterConfig::from_yaml(GOOD, "cluster.yaml").unwrap();
+    assert_eq!(
+        defaults.model_config().unwrap().compute,
+        settings::model::Precision::F32
+    );
+    let bad = error_of(&GOOD.replace("  image_size: 32\n", "  image_size: 32\n  compute: f8\n"));
+    assert!(bad.contains("model.compute"), "{bad}");
+}

@@ -19,11 +19,8 @@ impl From<&XFactorConfig> for v1::ModelConfig {
             global_tokens: c.global_tokens as u64,
             round_qkv_bf16: c.round_qkv_bf16,
             plucker_ray_conditioning: c.pose_conditioning == PoseConditioning::PluckerRays,
-            precision: match c.precision {
-                Precision::F32 => v1::Precision::F32,
-                Precision::Bf16 => v1::Precision::Bf16,
-                Precision::F16 => v1::Precision::F16,
-            } as i32,
+            precision: precision_to_wire(c.precision),
+            compute: precision_to_wire(c.compute),
         }
     }
 }
@@ -45,13 +42,27 @@ impl From<&v1::ModelConfig> for XFactorConfig {
             } else {
                 PoseConditioning::Latent
             },
-            // Both ends speak the same PROTOCOL_VERSION, so every value is known; an unknown
-            // one could only be f32's zero.
-            precision: match v1::Precision::try_from(m.precision) {
-                Ok(v1::Precision::Bf16) => Precision::Bf16,
-                Ok(v1::Precision::F16) => Precision::F16,
-                Ok(v1::Precision::F32) | Err(_) => Precision::F32,
-            },
+            precision: precision_from_wire(m.precision),
+            compute: precision_from_wire(m.compute),
         }
+    }
+}
+
+fn precision_to_wire(precision: Precision) -> i32 {
+    let wire = match precision {
+        Precision::F32 => v1::Precision::F32,
+        Precision::Bf16 => v1::Precision::Bf16,
+        Precision::F16 => v1::Precision::F16,
+    };
+    wire as i32
+}
+
+/// Both ends speak the same PROTOCOL_VERSION, so every value is known; an unknown one could
+/// only be f32's zero.
+fn precision_from_wire(value: i32) -> Precision {
+    match v1::Precision::try_from(value) {
+        Ok(v1::Precision::Bf16) => Precision::Bf16,
+        Ok(v1::Precision::F16) => Precision::F16,
+        Ok(v1::Precision::F32) | Err(_) => Precision::F32,
     }
 }

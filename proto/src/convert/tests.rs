@@ -11,6 +11,7 @@ fn model_settings_survive_the_wire() {
     let plucker = XFactorConfig {
         pose_conditioning: PoseConditioning::PluckerRays,
         precision: settings::model::Precision::Bf16,
+        compute: settings::model::Precision::F16,
         pose_dim: settings::model::CAMERA_VECTOR_VALUES,
         ..XFactorConfig::tiny(16)
     };

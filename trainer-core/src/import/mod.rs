@@ -296,6 +296,7 @@ fn infer_config(
         round_qkv_bf16: false,
         pose_conditioning: settings::model::PoseConditioning::Latent,
         precision: settings::model::Precision::F32,
+        compute: settings::model::Precision::F32,
     };
     config.validate().map_err(|source| ImportError::Config {
         path: path.to_path_buf(),

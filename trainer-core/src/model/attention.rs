@@ -14,6 +14,7 @@ use burn::backend::autodiff::ops::{Backward, Ops, OpsKind};
 use burn::backend::ops::AttentionModuleOptions;
 use burn::backend::tensor::FloatTensor;
 use burn::backend::{Autodiff, Backend, Cube, Dispatch, Flex, backend_extension};
+use burn::backend::{DType, FloatDType, TensorMetadata};
 use burn::tensor::Tensor;
 
 /// Attention as one differentiable op on every backend the trainer runs on, over
@@ -63,17 +64,23 @@ impl<B: Backend> Backward<B, 3> for AttentionBackward {
         let [node_q, node_k, node_v] = ops.parents;
         let grad_out = grads.consume::<B>(&ops.node);
         let (q, k, v, bias) = ops.state;
+        // Products run in the inputs' type (a half under `model.compute`), the softmax and its
+        // Jacobian in float32, as torch's autocast does.
+        let compute = float_dtype::<B>(&q);
         let scale = scale_of::<B>(&q);
         let weights = softmax_weights::<B>(q.clone(), k.clone(), bias, scale);
         if let Some(node) = node_v {
-            let grad_v = B::float_matmul(B::float_transpose(weights.clone()), grad_out.clone());
+            let weights = B::float_cast(weights.clone(), compute);
+            let grad_v = B::float_matmul(B::float_transpose(weights), grad_out.clone());
             grads.register::<B>(node.id, grad_v);
         }
         // dS = P ∘ (dP − rowsum(P ∘ dP)), with dP = dO vᵀ: the softmax's Jacobian applied to
         // dP; rowsum(P ∘ dP) equals rowsum(dO ∘ O), so the output need not be kept.
         let grad_weights = B::float_matmul(grad_out, B::float_transpose(v));
+        let grad_weights = B::float_cast(grad_weights, FloatDType::F32);
         let row_dot = B::float_sum_dim(B::float_mul(weights.clone(), grad_weights.clone()), 3);
         let grad_scores = B::float_mul(weights, B::float_sub(grad_weights, row_dot));
+        let grad_scores = B::float_cast(grad_scores, compute);
         if let Some(node) = node_q {
             let grad_q = B::float_matmul(grad_scores.clone(), k);
             grads.register::<B>(node.id, B::float_mul_scalar(grad_q, scale.into()));
@@ -87,12 +94,22 @@ impl<B: Backend> Backward<B, 3> for AttentionBackward {
 
 /// `1 / sqrt(d)` for queries of head size `d`.
 fn scale_of<B: Backend>(q: &FloatTensor<B>) -> f64 {
-    let head_dim = burn::backend::TensorMetadata::shape(q)[3];
+    let head_dim = TensorMetadata::shape(q)[3];
     1.0 / (head_dim as f64).sqrt()
 }
 
-/// The attention weights `softmax(q kᵀ · scale + bias)` over the last axis, shifted by the row
-/// maximum so that `exp` cannot overflow.
+/// The float type `tensor` holds: a half, or float32 (the model has no other).
+fn float_dtype<B: Backend>(tensor: &FloatTensor<B>) -> FloatDType {
+    match TensorMetadata::dtype(tensor) {
+        DType::BF16 => FloatDType::BF16,
+        DType::F16 => FloatDType::F16,
+        _ => FloatDType::F32,
+    }
+}
+
+/// The attention weights `softmax(q kᵀ · scale + bias)` over the last axis, in float32
+/// whatever the inputs' type (the scores are computed in it), shifted by the row maximum so
+/// that `exp` cannot overflow.
 fn softmax_weights<B: Backend>(
     q: FloatTensor<B>,
     k: FloatTensor<B>,
@@ -100,14 +117,35 @@ fn softmax_weights<B: Backend>(
     scale: f64,
 ) -> FloatTensor<B> {
     let scores = B::float_matmul(B::float_mul_scalar(q, scale.into()), B::float_transpose(k));
+    let scores = B::float_cast(scores, FloatDType::F32);
     let scores = match bias {
-        Some(bias) => B::float_add(scores, bias),
+        Some(bias) => B::float_add(scores, B::float_cast(bias, FloatDType::F32)),
         None => scores,
     };
     let shift = B::float_max_dim(scores.clone(), 3);
     let exponentials = B::float_exp(B::float_sub(scores, shift));
     let normaliser = B::float_sum_dim(exponentials.clone(), 3);
     B::float_div(exponentials, normaliser)
+}
+
+/// The forward pass on `B`: burn's attention op, except for half inputs with a bias, where
+/// cubecl's op would take its unfused path with the softmax in the half type; there the
+/// weights are computed in float32 as the backward pass computes them.
+fn attention_forward<B: Backend>(
+    q: FloatTensor<B>,
+    k: FloatTensor<B>,
+    v: FloatTensor<B>,
+    bias: Option<FloatTensor<B>>,
+) -> FloatTensor<B> {
+    let compute = float_dtype::<B>(&q);
+    match bias {
+        Some(bias) if compute != FloatDType::F32 => {
+            let scale = scale_of::<B>(&q);
+            let weights = softmax_weights::<B>(q, k, Some(bias), scale);
+            B::float_matmul(B::float_cast(weights, compute), v)
+        }
+        bias => B::attention(q, k, v, None, bias, AttentionModuleOptions::default()),
+    }
 }
 
 impl<B: Backend, C: CheckpointStrategy> SoftmaxAttention for Autodiff<B, C> {
@@ -137,7 +175,6 @@ fn differentiable_attention<B: Backend, C: CheckpointStrategy>(
     v: FloatTensor<Autodiff<B, C>>,
     bias: Option<FloatTensor<B>>,
 ) -> FloatTensor<Autodiff<B, C>> {
-    let options = AttentionModuleOptions::default();
     match AttentionBackward
         .prepare::<C>([q.node(), k.node(), v.node()])
         .compute_bound()
@@ -146,15 +183,13 @@ fn differentiable_attention<B: Backend, C: CheckpointStrategy>(
         OpsKind::Tracked(prep) => {
             let (q, k, v) = (q.into_primitive(), k.into_primitive(), v.into_primitive());
             let state = (q.clone(), k.clone(), v.clone(), bias.clone());
-            prep.finish(state, B::attention(q, k, v, None, bias, options))
+            prep.finish(state, attention_forward::<B>(q, k, v, bias))
         }
-        OpsKind::UnTracked(prep) => prep.finish(B::attention(
+        OpsKind::UnTracked(prep) => prep.finish(attention_forward::<B>(
             q.into_primitive(),
             k.into_primitive(),
             v.into_primitive(),
-            None,
             bias,
-            options,
         )),
     }
 }

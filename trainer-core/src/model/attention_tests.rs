@@ -78,3 +78,44 @@ fn matches_the_composed_attention_and_its_gradients() {
 fn long_masked_sequences_take_the_tiled_kernel_and_agree() {
     agrees_with_composed(1, 2, 600, true);
 }
+
+/// Half inputs (`model.compute`): the products run in the half, the softmax in float32 (the
+/// masked forward computes its weights itself; the unmasked one is burn's op), so output and
+/// gradients stay within the half's rounding of the float32 reference.
+#[test]
+fn half_inputs_agree_with_float32_within_the_half_rounding() {
+    use burn::tensor::DType;
+    let device = Device::flex().autodiff();
+    let shape = [2, 3, 17, 8];
+    let draw = || Tensor::<4>::random(shape, Distribution::Normal(0.0, 1.5), &device);
+    let (q, k, v) = (draw(), draw(), draw());
+    for masked in [false, true] {
+        let bias = masked.then(|| segment_bias(2, 17, &device));
+        for half in [DType::BF16, DType::F16] {
+            let run = |half: Option<DType>| {
+                let (q, k, v) = (
+                    q.clone().require_grad(),
+                    k.clone().require_grad(),
+                    v.clone().require_grad(),
+                );
+                let cast = |x: Tensor<4>| half.map_or(x.clone(), |half| x.cast(half));
+                let out = softmax_attention(
+                    cast(q.clone()),
+                    cast(k.clone()),
+                    cast(v.clone()),
+                    bias.as_ref(),
+                )
+                .cast(DType::F32);
+                let grads = out.clone().sum().backward();
+                [out.inner(), q.grad(&grads).expect("a gradient")]
+            };
+            let [out, grad_q] = run(Some(half));
+            let [reference_out, reference_grad_q] = run(None);
+            let out_error = relative_error(out, reference_out);
+            let grad_error = relative_error(grad_q, reference_grad_q);
+            let context = format!("{half:?} masked={masked}");
+            assert!(out_error < 2e-2, "{context}: output off by {out_error:e}");
+            assert!(grad_error < 5e-2, "{context}: dq off by {grad_error:e}");
+        }
+    }
+}

@@ -4,6 +4,7 @@ use burn::module::Param;
 use burn::tensor::{Device, Tensor, TensorData};
 
 use data::rng::Stream;
+use settings::model::Precision;
 
 /// Hands out freshly initialised parameters, each drawn from its own stream keyed by
 /// `(seed, parameter index)`, so a model built twice from one seed is bitwise identical on any
@@ -12,6 +13,7 @@ pub struct ParamInit<'a> {
     device: &'a Device,
     seed: u64,
     next_index: u64,
+    compute: Precision,
 }
 
 impl<'a> ParamInit<'a> {
@@ -21,7 +23,18 @@ impl<'a> ParamInit<'a> {
             device,
             seed,
             next_index: 0,
+            compute: Precision::F32,
         }
+    }
+
+    /// Layers built from here compute their products in `compute`'s type (`model.compute`).
+    pub fn computing_in(self, compute: Precision) -> Self {
+        Self { compute, ..self }
+    }
+
+    /// The type layers built from here compute their products in.
+    pub fn compute(&self) -> Precision {
+        self.compute
     }
 
     fn stream(&mut self) -> Stream {

@@ -6,6 +6,8 @@ use burn::tensor::Tensor;
 use burn::tensor::activation::sigmoid;
 
 use super::init::ParamInit;
+use super::precision::linear_in;
+use settings::model::Precision;
 
 /// Standard deviation of freshly initialised biases.
 const BIAS_STD: f64 = 1e-6;
@@ -35,6 +37,9 @@ pub struct Dense {
     pub kernel: Param<Tensor<2>>,
     /// Optional `(out)` bias.
     pub bias: Option<Param<Tensor<1>>>,
+    /// The type the product computes in (`model.compute`).
+    #[module(skip)]
+    pub compute: Precision,
 }
 
 impl Dense {
@@ -42,12 +47,21 @@ impl Dense {
     pub fn new(init: &mut ParamInit, fan_in: usize, fan_out: usize, with_bias: bool) -> Self {
         let kernel = init.xavier_uniform(fan_in, fan_out);
         let bias = with_bias.then(|| init.normal([fan_out], BIAS_STD));
-        Self { kernel, bias }
+        Self {
+            kernel,
+            bias,
+            compute: init.compute(),
+        }
     }
 
     /// Applies the layer over the last axis.
     pub fn forward<const D: usize>(&self, x: Tensor<D>) -> Tensor<D> {
-        burn::tensor::module::linear(x, self.kernel.val(), self.bias.as_ref().map(Param::val))
+        linear_in(
+            x,
+            self.kernel.val(),
+            self.bias.as_ref().map(Param::val),
+            self.compute,
+        )
     }
 }
 

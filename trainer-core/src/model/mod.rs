@@ -40,7 +40,7 @@ impl XFactor {
     /// parameter drawn from a stream keyed by `seed` and its position in the model.
     pub fn new(config: &XFactorConfig, seed: u64, device: &Device) -> Result<Self, ConfigError> {
         config.validate()?;
-        let mut init = ParamInit::new(seed, device);
+        let mut init = ParamInit::new(seed, device).computing_in(config.compute);
         let pose_enc = PoseEnc::new(config, &mut init);
         let render = Render::new(config, &mut init);
         Ok(Self { pose_enc, render })

@@ -3,12 +3,11 @@
 
 use burn::module::{Module, Param};
 use burn::tensor::Tensor;
-use burn::tensor::module::linear;
 
 use super::attention::softmax_attention;
 use super::init::ParamInit;
 use super::layers::{Dense, LayerNorm, LayerScale, Mlp2, RmsNorm, gelu_tanh, rms_normalize};
-use super::precision;
+use super::precision::{self, from_compute, linear_in, to_compute};
 use super::rope::RopeTable;
 use settings::model::Precision;
 
@@ -117,9 +116,10 @@ impl MultiViewLayer {
         // The fused `C -> 6C` projection is applied as three products with column blocks of its
         // kernel, so q, k, qs, ks come out as one contiguous (B, V, T', 4, h, d) tensor to be
         // normalised and rotated together, with no copy of the activations.
+        let compute = self.qkv.compute;
         let kernel = self.qkv.kernel.val();
         let columns = |start: usize, count: usize| kernel.clone().narrow(1, start * c, count * c);
-        let project = |weight: Tensor<2>| linear(normed.clone(), weight, None);
+        let project = |weight: Tensor<2>| linear_in(normed.clone(), weight, None, compute);
         let queries_keys =
             project(Tensor::cat(vec![columns(0, 2), columns(3, 2)], 1)).reshape([b, v, t, 4, h, d]);
         let values = project(columns(2, 1));
@@ -136,34 +136,44 @@ impl MultiViewLayer {
         let queries_keys = rope.apply(rms_normalize(queries_keys, alphas.unsqueeze::<6>()));
         let part = |index: usize| queries_keys.clone().narrow(3, index, 1);
 
-        let global_heads = |x: Tensor<6>| self.round(x.reshape([b, v * t, h, d]).swap_dims(1, 2));
+        // q, k, v in the compute type after the release's rounding; the output back in float32.
+        let heads = |x: Tensor<6>, rows: usize, tokens: usize| {
+            to_compute(
+                self.round(x.reshape([rows, tokens, h, d]).swap_dims(1, 2)),
+                compute,
+            )
+        };
+        let global_heads = |x: Tensor<6>| heads(x, b, v * t);
         let global = softmax_attention(
             global_heads(part(0)),
             global_heads(part(1)),
             global_heads(values.reshape([b, v, t, 1, h, d])),
             masks.global.as_ref(),
-        )
-        .swap_dims(1, 2)
-        .reshape([b, v, t, c]);
+        );
+        let global = from_compute(global, compute)
+            .swap_dims(1, 2)
+            .reshape([b, v, t, c]);
 
-        let view_heads = |x: Tensor<6>| self.round(x.reshape([b * v, t, h, d]).swap_dims(1, 2));
+        let view_heads = |x: Tensor<6>| heads(x, b * v, t);
         let per_view = softmax_attention(
             view_heads(part(2)),
             view_heads(part(3)),
             view_heads(view_values.reshape([b, v, t, 1, h, d])),
             masks.per_view.as_ref(),
-        )
-        .swap_dims(1, 2)
-        .reshape([b, v, t, c]);
+        );
+        let per_view = from_compute(per_view, compute)
+            .swap_dims(1, 2)
+            .reshape([b, v, t, c]);
 
         // The `2C -> C` output projection of concat(global, per_view), as two products with the
         // kernel's row blocks instead of materialising the concatenation.
         let out_kernel = self.out_proj.kernel.val();
-        let attended = linear(global, out_kernel.clone().narrow(0, 0, c), None)
-            + linear(
+        let attended = linear_in(global, out_kernel.clone().narrow(0, 0, c), None, compute)
+            + linear_in(
                 per_view,
                 out_kernel.narrow(0, c, c),
                 self.out_proj.bias.as_ref().map(Param::val),
+                compute,
             );
         let z0 = z + self.attn_scale.forward(attended);
         let mlp_out = self
