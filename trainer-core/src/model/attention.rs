@@ -2,10 +2,11 @@
 //! backward pass (issue 33: the scores, weights and products the autodiff graph kept per
 //! attention were most of a step's device memory).
 //!
-//! The forward pass is burn's `attention` op on each backend (flash kernels on cubecl devices
-//! where no bias is given, burn-flex's tiled kernel on the CPU); under autodiff it records one
-//! node that keeps only `q`, `k`, `v` and the bias, and its backward pass recomputes the weights
-//! from them, one attention at a time, as flash attention's backward does.
+//! Under autodiff it records one node that keeps only `q`, `k`, `v` and the bias; its backward
+//! pass recomputes the weights from them, one attention at a time, as flash attention's
+//! backward does. The forward pass is burn's attention op where that op computes what the
+//! backward pass assumes (burn-flex's tiled kernel on the CPU; cubecl's flash kernels for half
+//! inputs without a bias), else the weights in float32 and one product.
 
 use burn::backend::autodiff::checkpoint::base::Checkpointer;
 use burn::backend::autodiff::checkpoint::strategy::CheckpointStrategy;
@@ -27,9 +28,7 @@ pub trait SoftmaxAttention: Backend {
         q: FloatTensor<Self>,
         k: FloatTensor<Self>,
         v: FloatTensor<Self>,
-    ) -> FloatTensor<Self> {
-        Self::attention(q, k, v, None, None, AttentionModuleOptions::default())
-    }
+    ) -> FloatTensor<Self>;
 
     /// `softmax(q kᵀ / sqrt(d) + bias) v`; `bias` `(batch, 1, tokens, tokens)` is broadcast
     /// over heads.
@@ -38,15 +37,48 @@ pub trait SoftmaxAttention: Backend {
         k: FloatTensor<Self>,
         v: FloatTensor<Self>,
         bias: FloatTensor<Self>,
-    ) -> FloatTensor<Self> {
-        Self::attention(q, k, v, None, Some(bias), AttentionModuleOptions::default())
-    }
+    ) -> FloatTensor<Self>;
 }
 
-impl SoftmaxAttention for Cube {}
-impl SoftmaxAttention for Flex {}
+/// What burn's attention op computes a float32 attention in on a backend.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum FusedKernel {
+    /// In float32 (burn-flex; libtorch, which keeps float32 inputs off its flash kernels).
+    Float32,
+    /// Possibly in f16 tiles: cubecl's tensor-core flash kernels take their tiles in f16
+    /// whatever the inputs' type, where autotune picks them.
+    HalfTiles,
+}
+
+/// The concrete backends' forward pass ([`attention_forward`] with what their fused kernel
+/// computes in).
+macro_rules! concrete_attention {
+    ($backend:ty, $fused:expr) => {
+        impl SoftmaxAttention for $backend {
+            fn softmax_attention(
+                q: FloatTensor<Self>,
+                k: FloatTensor<Self>,
+                v: FloatTensor<Self>,
+            ) -> FloatTensor<Self> {
+                attention_forward::<Self>(q, k, v, None, $fused)
+            }
+
+            fn biased_softmax_attention(
+                q: FloatTensor<Self>,
+                k: FloatTensor<Self>,
+                v: FloatTensor<Self>,
+                bias: FloatTensor<Self>,
+            ) -> FloatTensor<Self> {
+                attention_forward::<Self>(q, k, v, Some(bias), $fused)
+            }
+        }
+    };
+}
+
+concrete_attention!(Cube, FusedKernel::HalfTiles);
+concrete_attention!(Flex, FusedKernel::Float32);
 #[cfg(feature = "libtorch")]
-impl SoftmaxAttention for burn::backend::LibTorch {}
+concrete_attention!(burn::backend::LibTorch, FusedKernel::Float32);
 
 /// The backward pass of [`SoftmaxAttention`]: its state is the inputs, not the weights.
 #[derive(Debug)]
@@ -70,17 +102,17 @@ impl<B: Backend> Backward<B, 3> for AttentionBackward {
         let scale = scale_of::<B>(&q);
         let weights = softmax_weights::<B>(q.clone(), k.clone(), bias, scale);
         if let Some(node) = node_v {
-            let weights = B::float_cast(weights.clone(), compute);
+            let weights = cast_to::<B>(weights.clone(), compute);
             let grad_v = B::float_matmul(B::float_transpose(weights), grad_out.clone());
             grads.register::<B>(node.id, grad_v);
         }
         // dS = P ∘ (dP − rowsum(P ∘ dP)), with dP = dO vᵀ: the softmax's Jacobian applied to
         // dP; rowsum(P ∘ dP) equals rowsum(dO ∘ O), so the output need not be kept.
         let grad_weights = B::float_matmul(grad_out, B::float_transpose(v));
-        let grad_weights = B::float_cast(grad_weights, FloatDType::F32);
+        let grad_weights = cast_to::<B>(grad_weights, FloatDType::F32);
         let row_dot = B::float_sum_dim(B::float_mul(weights.clone(), grad_weights.clone()), 3);
         let grad_scores = B::float_mul(weights, B::float_sub(grad_weights, row_dot));
-        let grad_scores = B::float_cast(grad_scores, compute);
+        let grad_scores = cast_to::<B>(grad_scores, compute);
         if let Some(node) = node_q {
             let grad_q = B::float_matmul(grad_scores.clone(), k);
             grads.register::<B>(node.id, B::float_mul_scalar(grad_q, scale.into()));
@@ -107,9 +139,19 @@ fn float_dtype<B: Backend>(tensor: &FloatTensor<B>) -> FloatDType {
     }
 }
 
+/// `tensor` in `dtype`; no cast recorded where it already is (fusion would record one).
+fn cast_to<B: Backend>(tensor: FloatTensor<B>, dtype: FloatDType) -> FloatTensor<B> {
+    if float_dtype::<B>(&tensor) == dtype {
+        tensor
+    } else {
+        B::float_cast(tensor, dtype)
+    }
+}
+
 /// The attention weights `softmax(q kᵀ · scale + bias)` over the last axis, in float32
 /// whatever the inputs' type (the scores are computed in it), shifted by the row maximum so
-/// that `exp` cannot overflow.
+/// that `exp` cannot overflow. A row the bias masks entirely gets zero weights, not NaN, as in
+/// burn's own attention.
 fn softmax_weights<B: Backend>(
     q: FloatTensor<B>,
     k: FloatTensor<B>,
@@ -117,38 +159,45 @@ fn softmax_weights<B: Backend>(
     scale: f64,
 ) -> FloatTensor<B> {
     let scores = B::float_matmul(B::float_mul_scalar(q, scale.into()), B::float_transpose(k));
-    let scores = B::float_cast(scores, FloatDType::F32);
+    let scores = cast_to::<B>(scores, FloatDType::F32);
     let scores = match bias {
-        Some(bias) => B::float_add(scores, B::float_cast(bias, FloatDType::F32)),
+        Some(bias) => B::float_add(scores, cast_to::<B>(bias, FloatDType::F32)),
         None => scores,
     };
-    let shift = B::float_max_dim(scores.clone(), 3);
+    let shift = B::float_clamp_min(B::float_max_dim(scores.clone(), 3), f32::MIN.into());
     let exponentials = B::float_exp(B::float_sub(scores, shift));
     let normaliser = B::float_sum_dim(exponentials.clone(), 3);
+    let normaliser = B::float_clamp_min(normaliser, f32::MIN_POSITIVE.into());
     B::float_div(exponentials, normaliser)
 }
 
-/// The forward pass on `B`: burn's attention op, except for half inputs with a bias, where
-/// cubecl's op would take its unfused path with the softmax in the half type; there the
-/// weights are computed in float32 as the backward pass computes them.
+/// The forward pass on `B`: burn's attention op where it computes what the backward pass
+/// assumes: float32 inputs on a backend whose fused kernel stays in float32, or half inputs
+/// (`model.compute`) without a bias, where half tiles are what the speed mode asks for. Else
+/// the float32 weights the backward pass recomputes, and one product in the inputs' type:
+/// float32 on cubecl devices, and half inputs with a bias, whose unfused path in burn would
+/// take the softmax in the half.
 fn attention_forward<B: Backend>(
     q: FloatTensor<B>,
     k: FloatTensor<B>,
     v: FloatTensor<B>,
     bias: Option<FloatTensor<B>>,
+    fused: FusedKernel,
 ) -> FloatTensor<B> {
     let compute = float_dtype::<B>(&q);
-    match bias {
-        Some(bias) if compute != FloatDType::F32 => {
-            let scale = scale_of::<B>(&q);
-            let weights = softmax_weights::<B>(q, k, Some(bias), scale);
-            B::float_matmul(B::float_cast(weights, compute), v)
-        }
-        bias => B::attention(q, k, v, None, bias, AttentionModuleOptions::default()),
+    let burns_op = match compute {
+        FloatDType::F32 => fused == FusedKernel::Float32,
+        _ => bias.is_none(),
+    };
+    if burns_op {
+        return B::attention(q, k, v, None, bias, AttentionModuleOptions::default());
     }
+    let scale = scale_of::<B>(&q);
+    let weights = softmax_weights::<B>(q, k, bias, scale);
+    B::float_matmul(cast_to::<B>(weights, compute), v)
 }
 
-impl<B: Backend, C: CheckpointStrategy> SoftmaxAttention for Autodiff<B, C> {
+impl<B: SoftmaxAttention, C: CheckpointStrategy> SoftmaxAttention for Autodiff<B, C> {
     fn softmax_attention(
         q: FloatTensor<Self>,
         k: FloatTensor<Self>,
@@ -167,14 +216,18 @@ impl<B: Backend, C: CheckpointStrategy> SoftmaxAttention for Autodiff<B, C> {
     }
 }
 
-/// burn's attention on `B` recorded as one autodiff node whose state is the inputs. The bias is
-/// a constant (segment masks), so it gets no gradient.
-fn differentiable_attention<B: Backend, C: CheckpointStrategy>(
+/// `B`'s attention recorded as one autodiff node whose state is the inputs. The bias is a
+/// constant (segment masks), so it gets no gradient.
+fn differentiable_attention<B: SoftmaxAttention, C: CheckpointStrategy>(
     q: FloatTensor<Autodiff<B, C>>,
     k: FloatTensor<Autodiff<B, C>>,
     v: FloatTensor<Autodiff<B, C>>,
     bias: Option<FloatTensor<B>>,
 ) -> FloatTensor<Autodiff<B, C>> {
+    let forward = |q, k, v, bias: Option<FloatTensor<B>>| match bias {
+        Some(bias) => B::biased_softmax_attention(q, k, v, bias),
+        None => B::softmax_attention(q, k, v),
+    };
     match AttentionBackward
         .prepare::<C>([q.node(), k.node(), v.node()])
         .compute_bound()
@@ -183,9 +236,9 @@ fn differentiable_attention<B: Backend, C: CheckpointStrategy>(
         OpsKind::Tracked(prep) => {
             let (q, k, v) = (q.into_primitive(), k.into_primitive(), v.into_primitive());
             let state = (q.clone(), k.clone(), v.clone(), bias.clone());
-            prep.finish(state, attention_forward::<B>(q, k, v, bias))
+            prep.finish(state, forward(q, k, v, bias))
         }
-        OpsKind::UnTracked(prep) => prep.finish(attention_forward::<B>(
+        OpsKind::UnTracked(prep) => prep.finish(forward(
             q.into_primitive(),
             k.into_primitive(),
             v.into_primitive(),

@@ -119,3 +119,28 @@ fn half_inputs_agree_with_float32_within_the_half_rounding() {
         }
     }
 }
+
+/// A query row the bias masks entirely (no such row in the model: every token sees its own
+/// segment) gets a zero output and finite gradients, as burn's own attention gives, not NaN.
+#[test]
+fn a_fully_masked_row_gives_zeros_not_nan() {
+    let device = Device::flex().autodiff();
+    let shape = [1, 2, 6, 8];
+    let draw = || Tensor::<4>::random(shape, Distribution::Normal(0.0, 1.0), &device);
+    let (q, k, v) = (
+        draw().require_grad(),
+        draw().require_grad(),
+        draw().require_grad(),
+    );
+    let row = Tensor::<4>::full([1, 1, 1, 6], f32::NEG_INFINITY, &device);
+    let bias = Tensor::cat(vec![row, Tensor::zeros([1, 1, 5, 6], &device)], 2);
+    let out = softmax_attention(q.clone(), k.clone(), v.clone(), Some(&bias));
+    let masked_row: f32 = out.clone().narrow(2, 0, 1).abs().max().into_scalar();
+    assert_eq!(masked_row, 0.0);
+    let grads = out.sum().backward();
+    for (name, x) in [("q", &q), ("k", &k), ("v", &v)] {
+        let grad = x.grad(&grads).expect("a gradient");
+        let has_nan: bool = grad.is_nan().any().into_scalar();
+        assert!(!has_nan, "d{name} has NaN");
+    }
+}
