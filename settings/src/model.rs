@@ -39,8 +39,9 @@ pub struct XFactorConfig {
     #[serde(default)]
     pub precision: Precision,
     /// The type matrix products and attention compute in, as torch's autocast: `f32` (the
-    /// default, the parity reference), or a half type for speed on tensor cores. Weights,
-    /// gradients, the optimizer's state, norms, the softmax and the loss stay float32.
+    /// default, the parity reference), or `bf16` for speed on tensor cores (`f16` is refused:
+    /// it would need loss scaling). Weights, gradients, the optimizer's state, norms, the
+    /// softmax and the loss stay float32.
     #[serde(default)]
     pub compute: Precision,
 }
@@ -125,6 +126,12 @@ pub enum ConfigError {
         /// Configured pose-latent size.
         pose_dim: usize,
     },
+    /// Products in f16 need their gradients scaled up (torch's GradScaler), which the trainer
+    /// does not do: float32 gradients cast to f16 underflow.
+    #[error(
+        "model config: compute f16 needs loss scaling, which the trainer does not do (the paper model's LayerScale branches get gradients near 5e-9, below f16's smallest value); use compute bf16, whose range is float32's"
+    )]
+    F16Compute,
 }
 
 impl XFactorConfig {
@@ -246,6 +253,9 @@ impl XFactorConfig {
                 pose_dim: self.pose_dim,
             });
         }
+        if self.compute == Precision::F16 {
+            return Err(ConfigError::F16Compute);
+        }
         Ok(())
     }
 
@@ -312,6 +322,11 @@ mod tests {
         c.pose_dim = CAMERA_VECTOR_VALUES;
         c.validate().unwrap();
         assert_eq!(c.pose_token_values(), 6 * 16);
+        let mut c = XFactorConfig::tiny(16);
+        c.compute = Precision::F16;
+        assert_eq!(c.validate(), Err(ConfigError::F16Compute));
+        c.compute = Precision::Bf16;
+        c.validate().unwrap();
     }
 
     #[test]

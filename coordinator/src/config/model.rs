@@ -44,8 +44,9 @@ pub struct ModelConfig {
     /// rounding points in that half type, with float32 weights and optimizer state.
     #[serde(default)]
     pub precision: Precision,
-    /// The type products and attention compute in (`f32`, the default; `bf16` or `f16` for
-    /// speed on tensor cores, as torch's autocast), with float32 weights and optimizer state.
+    /// The type products and attention compute in (`f32`, the default; `bf16` for speed on
+    /// tensor cores, as torch's autocast; `f16` is refused, it would need loss scaling), with
+    /// float32 weights and optimizer state.
     #[serde(default)]
     pub compute: Precision,
 }
@@ -124,6 +125,7 @@ impl ModelConfig {
             ConfigError::HeadSize { .. } if self.num_heads.is_some() => "num_heads",
             ConfigError::HeadSize { .. } => "width",
             ConfigError::CameraVector { .. } => "pose_dim",
+            ConfigError::F16Compute => "compute",
         }
     }
 }

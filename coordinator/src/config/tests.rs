@@ -378,4 +378,9 @@ fn the_compute_type_is_read_defaults_to_f32_and_a_bad_one_is_named() {
     );
     let bad = error_of(&GOOD.replace("  image_size: 32\n", "  image_size: 32\n  compute: f8\n"));
     assert!(bad.contains("model.compute"), "{bad}");
+    let f16 = error_of(&GOOD.replace("  image_size: 32\n", "  image_size: 32\n  compute: f16\n"));
+    assert!(
+        f16.contains("model.compute") && f16.contains("loss scaling"),
+        "{f16}"
+    );
 }
