@@ -6,7 +6,8 @@
 #            through the host's Vulkan driver), xfactor-local, xfactor-coordinator and the
 #            default xfactor-worker
 #   gpu      the step benchmark and xfactor-worker built with `vulkan,cuda` (SPIR-V, and CUDA
-#            with kernels compiled by NVRTC at run time; no libtorch, so it loads on any host);
+#            with kernels compiled by NVRTC at run time; no libtorch, so it loads on any host),
+#            with xfactor-local and xfactor-coordinator (no tensor library: the same either way);
 #            its worker replaces the default one in the folder (and in the target folder: it
 #            loads on any host, and is the build CI tests: XFACTOR_FEATURES=vulkan,cuda)
 #   roads    on request: the step benchmark of the `vulkan,libtorch,cuda` build CI tests
@@ -68,7 +69,8 @@ for path in ${paths//,/ }; do
     default) command=(cargo build --release -p trainer-core --bench model_step
         -p coordinator --bin xfactor-local --bin xfactor-coordinator -p worker --bin xfactor-worker) ;;
     gpu) command=(scripts/build-feature.sh vulkan,cuda build --release -p trainer-core
-        --bench model_step -p worker --bin xfactor-worker) ;;
+        --bench model_step -p worker --bin xfactor-worker
+        -p coordinator --bin xfactor-local --bin xfactor-coordinator) ;;
     roads) command=(scripts/build-feature.sh vulkan,libtorch,cuda build --release
         -p trainer-core --bench model_step) ;;
     *) echo "bench-gpu: unknown build $path (expected default, gpu, roads)" >&2; exit 2 ;;

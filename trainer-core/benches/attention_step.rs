@@ -4,10 +4,11 @@
 //! the same run on the same device.
 //!
 //! `cargo bench -p trainer-core --bench attention_step -- [--backend cpu|wgpu|vulkan|cuda]
-//! [--batch 8] [--heads 16] [--tokens 514] [--head-dim 64] [--steps 3] [--unmasked]`
+//! [--batch 8] [--heads 16] [--tokens 640] [--head-dim 64] [--steps 3] [--unmasked]`
 //!
-//! The defaults are the paper model's pose encoder at batch 8 (two views of 256 patches and
-//! one global token each; segment masks as the model builds them). Per variant it prints the
+//! The defaults are the paper model's pose-encoder global attention at batch 8: 16 heads of
+//! 64, two views of 256 patches and 2 x 32 global tokens, and a `(batch, 1, N, N)` segment
+//! mask (two segments; the model's own masks have the same shape). Per variant it prints the
 //! median step time, the memory the forward pass leaves for the backward pass (resident host
 //! memory on the CPU backend and lavapipe, the pools' live bytes on cubecl devices) and the
 //! peak resident memory of the step.
@@ -33,7 +34,7 @@ fn parse_options() -> Options {
         backend: Backend::Cpu,
         batch: 8,
         heads: 16,
-        tokens: 514,
+        tokens: 640,
         head_dim: 64,
         steps: 3,
         masked: true,
@@ -64,8 +65,8 @@ fn parse_options() -> Options {
     options
 }
 
-/// Segment masks as the pose encoder builds them: each view's patches and global token in one
-/// segment, `0` where query and key share a segment and `-inf` elsewhere.
+/// A segment mask of the shape the model builds: the first and second half of the tokens in
+/// two segments, `0` where query and key share a segment and `-inf` elsewhere.
 fn segment_bias(batch: usize, tokens: usize, device: &Device) -> Tensor<4> {
     let ids: Vec<f32> = (0..tokens).map(|i| (2 * i / tokens) as f32).collect();
     let ids = Tensor::<1>::from_floats(ids.as_slice(), device);

@@ -102,15 +102,12 @@ fn wgpu_on_a_host_without_an_adapter_is_refused_before_the_worker_joins() {
 
 #[test]
 fn a_backend_left_out_of_this_build_is_refused_naming_its_cargo_feature() {
-    for backend in ["vulkan", "cuda", "libtorch"] {
-        let built = match backend {
-            "vulkan" => cfg!(feature = "vulkan"),
-            "cuda" => cfg!(feature = "cuda"),
-            _ => cfg!(feature = "libtorch"),
-        };
-        if built {
-            continue;
-        }
+    let backends = [
+        ("vulkan", cfg!(feature = "vulkan")),
+        ("cuda", cfg!(feature = "cuda")),
+        ("libtorch", cfg!(feature = "libtorch")),
+    ];
+    for (backend, _) in backends.into_iter().filter(|(_, built)| !built) {
         let output = std::process::Command::new(WORKER)
             .args(["--coordinator", "http://127.0.0.1:1", "--token", "t"])
             .args(["--device", backend, "--no-slurm"])
