@@ -26,6 +26,10 @@ fi
 if ! command -v patch >/dev/null; then
     apt_packages+=(patch)
 fi
+# The GPU benchmark's folder is xz-compressed (scripts/bench-gpu.sh).
+if ! command -v xz >/dev/null; then
+    apt_packages+=(xz-utils)
+fi
 if ! command -v ffmpeg >/dev/null || ! command -v ffprobe >/dev/null; then
     apt_packages+=(ffmpeg)
 fi

@@ -17,10 +17,18 @@ deadline="${DEADLINE_S:-450}"
 results="$here/results.txt"
 : >"$results"
 mkdir -p "$here/bin"
-for packed in "$here"/*.gz; do
+# xz where the host has it, else Python's lzma module.
+unpack() { # packed binary
+    if command -v xz >/dev/null; then
+        xz -dc "$1" >"$2"
+    else
+        python3 -c 'import lzma, shutil, sys; shutil.copyfileobj(lzma.open(sys.argv[1]), open(sys.argv[2], "wb"))' "$1" "$2"
+    fi
+}
+for packed in "$here"/*.xz; do
     [ -e "$packed" ] || continue
-    binary="$here/bin/$(basename "$packed" .gz)"
-    [ -x "$binary" ] || { gunzip -c "$packed" >"$binary" && chmod +x "$binary"; }
+    binary="$here/bin/$(basename "$packed" .xz)"
+    [ -x "$binary" ] || { unpack "$packed" "$binary" && chmod +x "$binary"; }
 done
 
 # Seconds left before the deadline.
