@@ -17,7 +17,7 @@ use std::time::Instant;
 
 use burn::tensor::{Device, Tensor};
 use trainer_core::backend::{Backend, BackendDevices, MemoryFigures};
-use trainer_core::model::{op_by_op_attention, softmax_attention};
+use trainer_core::model::{op_by_op_attention, segment_bias, softmax_attention};
 
 struct Options {
     backend: Backend,
@@ -65,19 +65,11 @@ fn parse_options() -> Options {
     options
 }
 
-/// A segment mask of the shape the model builds: the first and second half of the tokens in
-/// two segments, `0` where query and key share a segment and `-inf` elsewhere.
-fn segment_bias(batch: usize, tokens: usize, device: &Device) -> Tensor<4> {
+/// The model's segment bias for two segments, the first and second half of the tokens.
+fn two_segments(batch: usize, tokens: usize, device: &Device) -> Tensor<4> {
     let ids: Vec<f32> = (0..tokens).map(|i| (2 * i / tokens) as f32).collect();
     let ids = Tensor::<1>::from_floats(ids.as_slice(), device);
-    let query = ids
-        .clone()
-        .reshape([1, tokens, 1])
-        .expand([batch, tokens, tokens]);
-    let key = ids.reshape([1, 1, tokens]).expand([batch, tokens, tokens]);
-    Tensor::<3>::zeros([batch, tokens, tokens], device)
-        .mask_fill((query - key).not_equal_elem(0.0), f32::NEG_INFINITY)
-        .reshape([batch, 1, tokens, tokens])
+    segment_bias(ids.reshape([1, tokens]).expand([batch, tokens]))
 }
 
 type Attention = fn(Tensor<4>, Tensor<4>, Tensor<4>, Option<&Tensor<4>>) -> Tensor<4>;
@@ -106,7 +98,7 @@ fn run_variant(name: &str, attend: Attention, options: &Options, device: &Device
     };
     let bias = options
         .masked
-        .then(|| segment_bias(options.batch, options.tokens, device));
+        .then(|| two_segments(options.batch, options.tokens, device));
     let weights = draw(3);
     let inference = device.clone().inner();
     reset_peak_resident();

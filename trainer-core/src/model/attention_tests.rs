@@ -1,9 +1,9 @@
 use super::{op_by_op_attention, softmax_attention};
 use burn::tensor::{Device, Distribution, Tensor};
 
-/// `0` where the query's and key's segments agree, `-inf` elsewhere; segment `i % 3` for the
-/// first two thirds of the tokens, then `3`: whole runs of keys are masked for some rows.
-fn segment_bias(batch: usize, tokens: usize, device: &Device) -> Tensor<4> {
+/// The model's segment bias for segment `i % 3` over the first two thirds of the tokens, then
+/// `3`: whole runs of keys are masked for some rows.
+fn runs_of_segments(batch: usize, tokens: usize, device: &Device) -> Tensor<4> {
     let ids: Vec<f32> = (0..tokens)
         .map(|i| {
             if i < 2 * tokens / 3 {
@@ -14,14 +14,7 @@ fn segment_bias(batch: usize, tokens: usize, device: &Device) -> Tensor<4> {
         })
         .collect();
     let ids = Tensor::<1>::from_floats(ids.as_slice(), device);
-    let query = ids
-        .clone()
-        .reshape([1, tokens, 1])
-        .expand([batch, tokens, tokens]);
-    let key = ids.reshape([1, 1, tokens]).expand([batch, tokens, tokens]);
-    Tensor::<3>::zeros([batch, tokens, tokens], device)
-        .mask_fill((query - key).not_equal_elem(0.0), f32::NEG_INFINITY)
-        .reshape([batch, 1, tokens, tokens])
+    crate::model::segment_bias(ids.reshape([1, tokens]).expand([batch, tokens]))
 }
 
 /// Largest absolute difference between two tensors, over the larger one's largest magnitude.
@@ -40,7 +33,7 @@ fn agrees_with_composed(batch: usize, heads: usize, tokens: usize, masked: bool)
     let draw = || Tensor::<4>::random(shape, Distribution::Normal(0.0, 1.5), &device);
     let (q, k, v) = (draw(), draw(), draw());
     let weights = Tensor::<4>::random(shape, Distribution::Normal(0.0, 1.0), &device);
-    let bias = masked.then(|| segment_bias(batch, tokens, &device));
+    let bias = masked.then(|| runs_of_segments(batch, tokens, &device));
     let run = |attend: fn(Tensor<4>, Tensor<4>, Tensor<4>, Option<&Tensor<4>>) -> Tensor<4>| {
         let (q, k, v) = (
             q.clone().require_grad(),
@@ -90,7 +83,7 @@ fn half_inputs_agree_with_float32_within_the_half_rounding() {
     let draw = || Tensor::<4>::random(shape, Distribution::Normal(0.0, 1.5), &device);
     let (q, k, v) = (draw(), draw(), draw());
     for masked in [false, true] {
-        let bias = masked.then(|| segment_bias(2, 17, &device));
+        let bias = masked.then(|| runs_of_segments(2, 17, &device));
         for half in [DType::BF16, DType::F16] {
             let run = |half: Option<DType>| {
                 let (q, k, v) = (

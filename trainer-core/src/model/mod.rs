@@ -15,7 +15,7 @@ pub use attention::{SoftmaxAttention, op_by_op_attention, softmax_attention};
 pub use camera::{REFERENCE_FOCAL, plucker_tokens, rotation_columns};
 pub use init::ParamInit;
 pub use layers::{Dense, LayerNorm, LayerScale, Mlp2, Mlp3, RmsNorm, gelu_tanh};
-pub use multiview::{MultiViewLayer, SegmentMasks};
+pub use multiview::{MultiViewLayer, SegmentMasks, segment_bias};
 pub use patch::{patchify, unpatchify};
 pub use pose_enc::PoseEnc;
 pub use render::{PoseLatents, Render};

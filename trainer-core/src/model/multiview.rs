@@ -34,20 +34,23 @@ impl SegmentMasks {
     /// Builds the biases from float segment ids `(B, V, T')`.
     pub fn from_segments(segments: Tensor<3>) -> Self {
         let [b, v, t] = segments.dims();
-        let bias = |ids: Tensor<2>| -> Tensor<4> {
-            let [rows, n] = ids.dims();
-            let query = ids.clone().reshape([rows, n, 1]).expand([rows, n, n]);
-            let key = ids.reshape([rows, 1, n]).expand([rows, n, n]);
-            let forbidden = (query - key).not_equal_elem(0.0);
-            Tensor::zeros([rows, n, n], &forbidden.device())
-                .mask_fill(forbidden, f32::NEG_INFINITY)
-                .reshape([rows, 1, n, n])
-        };
         Self {
-            global: Some(bias(segments.clone().reshape([b, v * t]))),
-            per_view: Some(bias(segments.reshape([b * v, t]))),
+            global: Some(segment_bias(segments.clone().reshape([b, v * t]))),
+            per_view: Some(segment_bias(segments.reshape([b * v, t]))),
         }
     }
+}
+
+/// The additive attention bias of float segment ids `(rows, n)`: `(rows, 1, n, n)`, `0` where
+/// query and key share a segment and `-inf` where they do not.
+pub fn segment_bias(ids: Tensor<2>) -> Tensor<4> {
+    let [rows, n] = ids.dims();
+    let query = ids.clone().reshape([rows, n, 1]).expand([rows, n, n]);
+    let key = ids.reshape([rows, 1, n]).expand([rows, n, n]);
+    let forbidden = (query - key).not_equal_elem(0.0);
+    Tensor::zeros([rows, n, n], &forbidden.device())
+        .mask_fill(forbidden, f32::NEG_INFINITY)
+        .reshape([rows, 1, n, n])
 }
 
 /// One multi-view transformer layer (see SPEC "Multi-view layer").
