@@ -61,6 +61,31 @@ pub struct TrainWork {
     pub ring: Option<RingSecrets>,
     /// Which of its host's devices the worker drives (the job's; `--devices` overrides).
     pub devices: DeviceSet,
+    /// How the ring carries the gradients between ranks.
+    pub wire: WireFormat,
+}
+
+/// How the ring carries gradients between workers (`workers.allreduce_wire` in the cluster
+/// YAML). Sums are float32 either way; bf16 halves the bytes each rank sends and rounds each
+/// gradient once to bf16 (8 bits of mantissa) on its way round the ring.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Deserialize, serde::Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum WireFormat {
+    /// Every bit of every value (the default).
+    #[default]
+    F32,
+    /// bf16 values summed in float32; the loss terms still travel in float32.
+    Bf16,
+}
+
+impl WireFormat {
+    /// The name the YAML and the logs use.
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::F32 => "f32",
+            Self::Bf16 => "bf16",
+        }
+    }
 }
 
 impl TrainWork {

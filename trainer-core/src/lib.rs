@@ -17,6 +17,7 @@ pub mod objective;
 pub mod optim;
 pub mod parity;
 pub mod sharded;
+pub mod standin;
 pub mod trainer;
 
 pub use burn::tensor::Device;

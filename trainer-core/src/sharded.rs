@@ -80,6 +80,23 @@ fn shard_streams(shards: usize) -> Vec<StreamId> {
         .collect()
 }
 
+/// Runs `work` on the device stream of replica `index` of this worker, one stream per
+/// replica allocated on first use and kept for the process (as the shards' are: a stream per
+/// fresh thread would hold its memory pools after the thread ends). A worker runs each
+/// replica's step on a thread of its own, so the replicas' kernels queue on separate streams
+/// and none waits for another's.
+pub fn on_replica_stream<T>(index: usize, work: impl FnOnce() -> T) -> T {
+    static REPLICAS: Mutex<Vec<StreamId>> = Mutex::new(Vec::new());
+    let stream = {
+        let mut streams = REPLICAS.lock().unwrap_or_else(PoisonError::into_inner);
+        while streams.len() <= index {
+            streams.push(StreamId::allocate());
+        }
+        streams[index]
+    };
+    stream.executes(work)
+}
+
 /// Runs `shard_loss(model_copy, shard)` for `shard in 0..shards`, each on its own thread, and
 /// returns the sum of the losses and of their gradients with respect to `model`'s parameters.
 ///
@@ -144,6 +161,17 @@ mod tests {
         assert_eq!(shard_streams(2), first[..2]);
         let distinct: std::collections::BTreeSet<u64> = first.iter().map(|s| s.value).collect();
         assert_eq!(distinct.len(), 3, "{first:?}");
+    }
+
+    #[test]
+    fn each_replica_keeps_its_own_stream() {
+        let current = || StreamId::current();
+        let first = on_replica_stream(0, current);
+        let second = on_replica_stream(1, current);
+        assert_ne!(first, second);
+        assert_eq!(on_replica_stream(0, current), first);
+        let elsewhere = std::thread::spawn(move || on_replica_stream(1, current));
+        assert_eq!(elsewhere.join().unwrap(), second, "the same on any thread");
     }
     use crate::model::PoseLatents;
     use crate::{XFactor, XFactorConfig};

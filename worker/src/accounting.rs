@@ -7,14 +7,8 @@ use proto::v1::{LossTerms, StepReport};
 use settings::{DeviceInUse, Phase};
 use telemetry::Registry;
 
+use crate::datapath::StepFigures;
 use crate::metrics;
-use crate::step::StepFigures;
-
-/// Whether the parameter checksum is due after step `done` (steps counted from 1): every
-/// `every` steps and after the stage's last.
-pub fn checksum_due(done: u64, every: u64, total_steps: u64) -> bool {
-    done.is_multiple_of(every.max(1)) || done == total_steps
-}
 
 /// Everything known about one step once it is applied.
 #[derive(Debug, Clone)]
@@ -27,8 +21,6 @@ pub struct StepAccount {
     pub seconds: f64,
     /// Seconds it waited on the data loader.
     pub data_wait_s: f64,
-    /// The parameter checksum, when one was due.
-    pub checksum: Option<u32>,
     /// Undecodable frames skipped so far in this generation.
     pub skipped_frames: u64,
     /// Examples of them (sent only while there are some).
@@ -76,8 +68,8 @@ impl StepAccount {
                 l1: self.figures.l1,
                 lpips: self.figures.lpips,
             }),
-            parameter_checksum: self.checksum.unwrap_or(0),
-            checksum_computed: self.checksum.is_some(),
+            parameter_checksum: self.figures.checksum.unwrap_or(0),
+            checksum_computed: self.figures.checksum.is_some(),
             samples_per_s: self.samples_per_s(),
             allreduce_s: self.figures.allreduce_s,
             skipped_frames: self.skipped_frames,
@@ -122,6 +114,7 @@ mod tests {
     use trainer_core::trainer::StepMetrics;
 
     use super::*;
+    use crate::datapath::PhaseTimes;
 
     fn account(skipped_frames: u64, checksum: Option<u32>) -> StepAccount {
         StepAccount {
@@ -137,11 +130,12 @@ mod tests {
                 lpips: 0.2,
                 allreduce_s: 0.5,
                 reduced_bytes: 4000,
+                checksum,
+                phases: PhaseTimes::default(),
             },
             samples: 8,
             seconds: 2.0,
             data_wait_s: 0.25,
-            checksum,
             skipped_frames,
             skipped_examples: vec!["scene-3/frame-0007.png".into()],
             loader_queue: 2,
@@ -205,13 +199,6 @@ mod tests {
         assert_eq!(skipping.skipped_frames, 3);
         assert_eq!(skipping.skipped_examples, ["scene-3/frame-0007.png"]);
         assert!(!skipping.checksum_computed);
-    }
-
-    #[test]
-    fn checksums_fall_every_n_steps_and_after_the_last() {
-        let due: Vec<u64> = (1..=10).filter(|&done| checksum_due(done, 4, 10)).collect();
-        assert_eq!(due, [4, 8, 10]);
-        assert!(checksum_due(3, 0, 10), "an interval of 0 means every step");
     }
 
     #[test]

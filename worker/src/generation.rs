@@ -18,8 +18,8 @@ use trainer_core::trainer::Trainer;
 use crate::checkpoints;
 use crate::collective::{Ring, RingKeys};
 use crate::context::WorkerContext;
+use crate::datapath::Replica;
 use crate::device;
-use crate::step::Replica;
 
 /// A prepared assignment: the replicas of this worker, the data they read and the ring.
 pub struct Prepared {
@@ -58,7 +58,7 @@ pub fn prepare(
     let micro_batch = work.train.micro_batch.max(1);
     let slices = replica_slices(first, count, micro_batch, devices.len());
     let mut replicas = Vec::with_capacity(devices.len());
-    for (device, (first, count)) in devices.into_iter().zip(slices) {
+    for (index, (device, (first, count))) in devices.into_iter().zip(slices).enumerate() {
         let device = if context.options.activation_checkpointing {
             device.autodiff().gradient_checkpointing()
         } else {
@@ -67,6 +67,7 @@ pub fn prepare(
         let trainer = build_trainer(work, train.clone(), start.as_ref(), &device)?;
         replicas.push(Replica {
             trainer,
+            index,
             first,
             count,
         });
@@ -207,7 +208,8 @@ async fn join_ring(
         context.link,
         context.progress.generation_token(),
     )
-    .await?)
+    .await?
+    .with_wire(work.wire))
 }
 
 #[cfg(test)]

@@ -9,7 +9,8 @@
 //! - `daemon`: the loop over assignments; `failure`: whose fault a failed generation was;
 //!   `streaks`: whether to go on after it (only own faults can end a worker).
 //! - `training`, `evaluate`: one generation's work; `generation` prepares a training one.
-//! - `step`: one optimizer step over the worker's replicas; `accounting`: its books.
+//! - `datapath`: one optimizer step over the worker's replicas, from their backward passes
+//!   through the ring to the update and the checksum; `accounting`: its books.
 //! - `commits`: when rank 0 commits, and the commit in flight; `checkpoints`: the transfers.
 //! - `session`: the coordinator's RPCs and heartbeats; `health`: the gRPC health service.
 //! - leaves: `context`, `options`, `progress`, `metrics`, `device`, `shutdown`, `slurm`,
@@ -24,6 +25,7 @@ mod checkpoints;
 mod commits;
 mod context;
 mod daemon;
+mod datapath;
 mod device;
 mod evaluate;
 mod failure;
@@ -34,7 +36,6 @@ mod options;
 mod progress;
 mod session;
 mod shutdown;
-mod step;
 mod streaks;
 mod training;
 

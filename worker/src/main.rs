@@ -38,6 +38,8 @@ struct Cli {
 enum Command {
     /// Runs one rank of the all-reduce benchmark (benches/allreduce.rs starts the ranks)
     AllreduceBench(BenchArgs),
+    /// Runs one rank of the data-path benchmark (scripts/bench-scaling.sh starts the ranks)
+    PathBench(worker::bench::path::PathBenchArgs),
 }
 
 #[derive(Debug, clap::Args)]
@@ -225,8 +227,10 @@ fn main() -> anyhow::Result<()> {
     // heap instead of being mapped, faulted in and unmapped every step.
     let tuning = trainer_core::allocator::keep_freed_memory();
     let cli = Cli::parse();
-    if let Some(Command::AllreduceBench(args)) = cli.command {
-        return worker::bench::run_rank(&args);
+    match cli.command {
+        Some(Command::AllreduceBench(args)) => return worker::bench::run_rank(&args),
+        Some(Command::PathBench(args)) => return worker::bench::path::run_rank(&args),
+        None => {}
     }
     cli.daemon.log.init()?;
     tracing::debug!(?tuning, "allocator tuned");

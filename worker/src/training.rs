@@ -10,16 +10,15 @@ use proto::v1::{Activity, StepAck};
 use settings::work::TrainWork;
 use tokio::runtime::Runtime;
 use trainer_core::backend::MemoryFigures;
-use trainer_core::flat::parameter_checksum;
 
-use crate::accounting::{Reporter, StepAccount, checksum_due};
+use crate::accounting::{Reporter, StepAccount};
 use crate::checkpoints;
 use crate::commits::{CommitDecision, CommitRequest, CommitSchedule, InFlightCommit};
 use crate::context::{Ending, GenerationEnded, WorkerContext};
+use crate::datapath::{ChecksumPlan, DataPath};
 use crate::generation::{self, Prepared};
 use crate::metrics::{self, Timed};
 use crate::session::Client;
-use crate::step::Stepper;
 
 /// Trains the assigned stage from its resume point to its end as one rank of the group.
 pub fn train_generation(
@@ -40,7 +39,11 @@ pub fn train_generation(
     registry.set(&metrics::RANK, &[], work.rank as f64);
     registry.set(&metrics::GENERATION, &[], generation as f64);
     let timed = Timed::new(&source);
-    let mut stepper = Stepper::new(ring, context.options.drill_diverge_from_step);
+    let checksums = ChecksumPlan {
+        every: work.checksum_every,
+        total_steps: work.total_steps,
+    };
+    let mut path = DataPath::new(ring, checksums, context.options.drill_diverge_from_step);
     let mut run = StageRun {
         runtime,
         client,
@@ -62,7 +65,7 @@ pub fn train_generation(
             return Ok(ending);
         }
         let started = Instant::now();
-        let figures = stepper.step(runtime, &mut replicas, &timed, context.progress)?;
+        let figures = path.step(runtime, &mut replicas, &timed, context.progress)?;
         let done = figures.metrics.step + 1;
         context
             .progress
@@ -70,17 +73,11 @@ pub fn train_generation(
             .store(done, std::sync::atomic::Ordering::SeqCst);
         context.progress.doing(Activity::Idle);
         metrics::record_device_memory(registry, &MemoryFigures::read(replica_device(&replicas)?));
-        let checksum = if checksum_due(done, work.checksum_every, work.total_steps) {
-            Some(replica_checksum(&replicas, done)?)
-        } else {
-            None
-        };
         let account = StepAccount {
             figures,
             samples: samples_per_step,
             seconds: started.elapsed().as_secs_f64(),
             data_wait_s: timed.take_seconds(),
-            checksum,
             skipped_frames: source.inner().skipped_frames(),
             skipped_examples: source.inner().skipped_examples(),
             loader_queue: source.queued(),
@@ -95,26 +92,9 @@ pub fn train_generation(
 }
 
 /// The device of the first replica, whose memory the metrics show.
-fn replica_device(replicas: &[crate::step::Replica]) -> anyhow::Result<&trainer_core::Device> {
+fn replica_device(replicas: &[crate::datapath::Replica]) -> anyhow::Result<&trainer_core::Device> {
     let replica = replicas.first().context("no replica to train")?;
     Ok(replica.trainer.device())
-}
-
-/// The parameter checksum of this worker's replicas after step `done`; they received the
-/// same summed gradients, so they must be bitwise equal, and a replica that is not (a faulty
-/// device) fails the generation, which re-forms from the last commit.
-fn replica_checksum(replicas: &[crate::step::Replica], done: u64) -> anyhow::Result<u32> {
-    let checksums: Vec<u32> = replicas
-        .iter()
-        .map(|replica| parameter_checksum(replica.trainer.model()))
-        .collect();
-    match checksums.split_first() {
-        Some((&first, rest)) if rest.iter().all(|&other| other == first) => Ok(first),
-        Some(_) => bail!(
-            "this worker's replicas diverged after step {done}: parameter checksums {checksums:08x?}"
-        ),
-        None => bail!("no replica to checksum"),
-    }
 }
 
 /// The state of a stage's step loop beyond the replicas: who to tell, and the commit in
@@ -155,6 +135,10 @@ impl StageRun<'_> {
             grad_norm = metrics.grad_norm,
             step_s = account.seconds,
             allreduce_s = account.figures.allreduce_s,
+            compute_s = account.figures.phases.compute_s,
+            copy_s = account.figures.phases.copy_s,
+            apply_s = account.figures.phases.apply_s,
+            checksum_s = account.figures.phases.checksum_s,
             "step done"
         );
         let progress = self.context.progress;

@@ -94,6 +94,74 @@ async fn channel_to(address: &str) -> tonic::transport::Channel {
         .unwrap()
 }
 
+/// Gradient-like values of `rank`: small, of both signs, different on every rank.
+fn gradient(rank: usize, len: usize) -> Vec<f32> {
+    (0..len)
+        .map(|i| ((i * 7919 + rank * 104_729) % 2003) as f32 * 1e-6 - 1e-3)
+        .collect()
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_bf16_wire_sums_in_float32_and_leaves_every_rank_the_same_bits() {
+    let world = 3;
+    let mut servers = Vec::new();
+    for _ in 0..world {
+        servers.push(serve().await);
+    }
+    let peers: Vec<String> = servers.iter().map(|(a, _)| a.clone()).collect();
+    let cancelled = CancellationToken::new();
+    let (len, exact_tail) = (1003, 3);
+    let mut tasks = Vec::new();
+    for (rank, (_, mailbox)) in servers.into_iter().enumerate() {
+        let peers = peers.clone();
+        let cancelled = cancelled.clone();
+        tasks.push(tokio::spawn(async move {
+            let ring = join(&mailbox, rank, &peers, 7, cancelled).await;
+            let mut ring = ring.with_wire(worker::collective::WireFormat::Bf16);
+            ring.set_chunk_values(37);
+            let mut values = gradient(rank, len);
+            let stats = ring.all_reduce(&mut values, exact_tail).await.unwrap();
+            (values, stats.bytes_sent)
+        }));
+    }
+    let exact: Vec<f64> = (0..len)
+        .map(|i| {
+            (0..world)
+                .map(|rank| f64::from(gradient(rank, len)[i]))
+                .sum()
+        })
+        .collect();
+    let mut results = Vec::new();
+    for task in tasks {
+        results.push(task.await.unwrap());
+    }
+    let (first, sent) = &results[0];
+    for (values, _) in &results[1..] {
+        let bits = |v: &[f32]| v.iter().map(|x| x.to_bits()).collect::<Vec<_>>();
+        assert_eq!(bits(values), bits(first), "every rank holds the same sum");
+    }
+    for (i, (value, truth)) in first.iter().zip(&exact).enumerate() {
+        let error = (f64::from(*value) - truth).abs();
+        if i >= len - exact_tail {
+            assert!(error <= 1e-9, "exact value {i}: {value} against {truth}");
+        } else {
+            // Each of the 3 summands and the sum rounded once to bf16 (2^-9 relative each).
+            let bound = 4.0 * 2f64.powi(-9) * 3e-3;
+            assert!(
+                error <= bound,
+                "{i}: {value} against {truth} (error {error:e})"
+            );
+        }
+    }
+    // 2 (n - 1) / n of the buffer, at 2 bytes a value instead of 4 (the exact tail at 4).
+    let float32_bytes = 2 * (world - 1) * len * 4 / world;
+    let sent = *sent as usize;
+    assert!(
+        sent <= float32_bytes / 2 + 2 * exact_tail * 4,
+        "sent {sent} bytes, float32 would be {float32_bytes}"
+    );
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn three_ranks_sum_in_small_pipelined_chunks() {
     let mut servers = Vec::new();
@@ -112,7 +180,7 @@ async fn three_ranks_sum_in_small_pipelined_chunks() {
             ring.set_chunk_values(37);
             let mut values: Vec<f32> = (0..len).map(|i| (i * (rank + 1)) as f32).collect();
             for divisor in [6.0, 3.0] {
-                ring.all_reduce(&mut values).await.unwrap();
+                ring.all_reduce(&mut values, 0).await.unwrap();
                 values.iter_mut().for_each(|v| *v /= divisor);
             }
             values
@@ -139,7 +207,7 @@ async fn all_reduce_beside(chunk: Chunk) -> Result<ReduceStats, CollectiveError>
     let honest = tokio::spawn(async move {
         let mut ring = join(&mailbox_0, 0, &peers, 3, cancelled).await;
         let mut values = vec![1.0f32; 100];
-        ring.all_reduce(&mut values).await
+        ring.all_reduce(&mut values, 0).await
     });
     let channel = tonic::transport::Endpoint::from_shared(format!("http://{address_0}"))
         .unwrap()
@@ -220,7 +288,7 @@ async fn two_ranks_sum_over_tls_and_plain_text_is_refused() {
                 .await
                 .unwrap();
             let mut values = vec![rank as f32 + 1.0; 300];
-            ring.all_reduce(&mut values).await.unwrap();
+            ring.all_reduce(&mut values, 0).await.unwrap();
             values
         }));
     }
@@ -288,7 +356,7 @@ async fn only_the_left_neighbour_of_the_generation_may_stream() {
         tasks.push(tokio::spawn(async move {
             let mut ring = join(&mailbox, rank, &peers, 5, cancelled).await;
             let mut values = vec![rank as f32 + 1.0; 100];
-            ring.all_reduce(&mut values).await.unwrap();
+            ring.all_reduce(&mut values, 0).await.unwrap();
             values
         }));
     }

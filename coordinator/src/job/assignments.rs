@@ -61,6 +61,7 @@ pub fn train(
             data: stage.data.clone(),
             ring: None,
             devices: config.workers.devices.clone(),
+            wire: config.workers.allreduce_wire,
         })),
     }
 }

@@ -8,7 +8,7 @@ use settings::evaluation::EvaluationSpec;
 use settings::train::TrainConfig;
 use settings::work::{
     Assignment, CheckpointToEvaluate, EvaluateWork, FailureCause, GenerationFailure, RingSecrets,
-    TrainStart, TrainWork, Work,
+    TrainStart, TrainWork, WireFormat, Work,
 };
 use settings::{DeviceSet, Phase};
 
@@ -110,6 +110,7 @@ impl TryFrom<&v1::TrainAssignment> for TrainWork {
             )?,
             ring: ring_from_wire(&wire.ring_secret, &wire.left_ring_secret)?,
             devices: devices_from_wire(wire.devices.as_ref())?,
+            wire: wire_format_from_wire(wire.wire)?,
         })
     }
 }
@@ -145,7 +146,26 @@ impl From<&TrainWork> for v1::TrainAssignment {
             ring_secret,
             left_ring_secret,
             devices: Some(devices_to_wire(&work.devices)),
+            wire: wire_format_to_wire(work.wire) as i32,
         }
+    }
+}
+
+fn wire_format_from_wire(value: i32) -> Result<WireFormat, ConvertError> {
+    match v1::WireFormat::try_from(value) {
+        Ok(v1::WireFormat::F32) => Ok(WireFormat::F32),
+        Ok(v1::WireFormat::Bf16) => Ok(WireFormat::Bf16),
+        Err(_) => Err(ConvertError::Unknown {
+            field: "train.wire",
+            value,
+        }),
+    }
+}
+
+fn wire_format_to_wire(format: WireFormat) -> v1::WireFormat {
+    match format {
+        WireFormat::F32 => v1::WireFormat::F32,
+        WireFormat::Bf16 => v1::WireFormat::Bf16,
     }
 }
 

@@ -8,7 +8,7 @@ use settings::optim::{AdamWConfig, Schedule};
 use settings::train::{StageObjective, TrainConfig};
 use settings::work::{
     Assignment, CheckpointToEvaluate, EvaluateWork, FailureCause, GenerationFailure, RingSecrets,
-    TrainStart, TrainWork, Work,
+    TrainStart, TrainWork, WireFormat, Work,
 };
 use settings::{DeviceChoice, DeviceSet, Phase, XFactorConfig};
 
@@ -50,6 +50,7 @@ fn train_work(start: TrainStart, ring: Option<RingSecrets>) -> TrainWork {
         },
         ring,
         devices: DeviceSet::Ids(vec![0, 2]),
+        wire: WireFormat::Bf16,
     }
 }
 
@@ -183,6 +184,15 @@ fn malformed_train_assignments_are_refused_with_the_field() {
         Err(ConvertError::Unknown {
             field: "train.device",
             value: 99
+        })
+    );
+    let mut format = whole.clone();
+    format.wire = 7;
+    assert_eq!(
+        TrainWork::try_from(&format),
+        Err(ConvertError::Unknown {
+            field: "train.wire",
+            value: 7
         })
     );
 }

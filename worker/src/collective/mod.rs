@@ -11,7 +11,6 @@
 
 use std::time::{Duration, Instant};
 
-use bytes::Bytes;
 use proto::v1::Chunk;
 use proto::v1::collective_client::CollectiveClient;
 use tokio::sync::mpsc;
@@ -19,11 +18,14 @@ use tokio_stream::wrappers::UnboundedReceiverStream;
 use tokio_util::sync::CancellationToken;
 
 mod service;
+mod wire;
 
 use service::Inbound;
 pub use service::{
     CollectiveService, INBOX_CHUNKS, Mailbox, RING_SECRET_KEY, RingKeys, server, spawn_server,
 };
+use wire::Encoding;
+pub use wire::WireFormat;
 
 /// Values per chunk (1 MiB of `f32`): big enough to amortise per-message costs, small enough to
 /// pipeline.
@@ -144,6 +146,7 @@ pub struct Ring {
     cancel: CancellationToken,
     timeout: Duration,
     chunk_values: usize,
+    wire: WireFormat,
 }
 
 impl Ring {
@@ -171,6 +174,7 @@ impl Ring {
             cancel,
             timeout,
             chunk_values: CHUNK_VALUES,
+            wire: WireFormat::F32,
         };
         if world == 1 {
             return Ok(ring);
@@ -232,6 +236,13 @@ impl Ring {
         self.world
     }
 
+    /// This ring with gradients carried as `wire` (every rank of a generation must use the
+    /// same; a chunk of another width fails the size check and names its sender).
+    pub fn with_wire(mut self, wire: WireFormat) -> Self {
+        self.wire = wire;
+        self
+    }
+
     /// Changes the chunk size (tests use small chunks to exercise the pipeline).
     pub fn set_chunk_values(&mut self, values: usize) {
         self.chunk_values = values.max(1);
@@ -254,26 +265,27 @@ impl Ring {
         segment: usize,
         begin: usize,
         values: &[f32],
-    ) -> Result<(), CollectiveError> {
-        let mut bytes = vec![0u8; values.len() * 4];
-        for (raw, value) in bytes.chunks_exact_mut(4).zip(values) {
-            raw.copy_from_slice(&value.to_le_bytes());
-        }
+        encoding: &Encoding,
+    ) -> Result<usize, CollectiveError> {
         let chunk = Chunk {
             generation: self.generation,
             operation: self.operation,
             ring_step,
             segment: segment as u32,
             offset: begin as u64,
-            values: Bytes::from(bytes),
+            values: encoding.encode(begin, values),
             sender: self.rank as u32,
         };
+        let bytes = chunk.values.len();
         let outbound = self.outbound.as_ref().ok_or(CollectiveError::PeerGone {
             rank: (self.rank + 1) % self.world,
         })?;
-        outbound.send(chunk).map_err(|_| CollectiveError::PeerGone {
-            rank: (self.rank + 1) % self.world,
-        })
+        outbound
+            .send(chunk)
+            .map_err(|_| CollectiveError::PeerGone {
+                rank: (self.rank + 1) % self.world,
+            })
+            .map(|()| bytes)
     }
 
     async fn receive(&mut self) -> Result<Chunk, CollectiveError> {
@@ -305,9 +317,10 @@ impl Ring {
         mut self,
         runtime: &tokio::runtime::Runtime,
         mut values: Vec<f32>,
+        exact_tail: usize,
     ) -> Result<(Self, Vec<f32>, ReduceStats), CollectiveError> {
         let task = runtime.spawn(async move {
-            let stats = self.all_reduce(&mut values).await;
+            let stats = self.all_reduce(&mut values, exact_tail).await;
             stats.map(|stats| (self, values, stats))
         });
         runtime
@@ -315,19 +328,27 @@ impl Ring {
             .map_err(|e| CollectiveError::Aborted(e.to_string()))?
     }
 
-    /// Sums `values` element-wise across all ranks, in place; every rank ends with the same sum.
-    pub async fn all_reduce(&mut self, values: &mut [f32]) -> Result<ReduceStats, CollectiveError> {
+    /// Sums `values` element-wise across all ranks, in place; every rank ends with the same
+    /// sum. The last `exact_tail` values travel in float32 whatever the ring's wire.
+    pub async fn all_reduce(
+        &mut self,
+        values: &mut [f32],
+        exact_tail: usize,
+    ) -> Result<ReduceStats, CollectiveError> {
         let start = Instant::now();
         let (n, r) = (self.world, self.rank);
         if n == 1 {
             return Ok(ReduceStats::default());
         }
         let len = values.len();
+        let encoding = Encoding {
+            wire: self.wire,
+            exact_from: len.saturating_sub(exact_tail),
+        };
         let mut bytes_sent = 0u64;
         let (begin, end) = self.segment(len, r);
         for (a, b) in self.chunks(begin, end) {
-            self.send(0, r, a, &values[a..b])?;
-            bytes_sent += ((b - a) * 4) as u64;
+            bytes_sent += self.send(0, r, a, &values[a..b], &encoding)? as u64;
         }
         let steps = 2 * (n - 1);
         for step in 0..steps {
@@ -340,20 +361,15 @@ impl Ring {
             let pieces: Vec<(usize, usize)> = self.chunks(begin, end).collect();
             for (a, b) in pieces {
                 let chunk = self.receive().await?;
-                self.check(&chunk, step as u32, segment, a, b)?;
+                self.check(&chunk, step as u32, segment, a, b, &encoding)?;
                 let target = &mut values[a..b];
-                if step < n - 1 {
-                    for (value, raw) in target.iter_mut().zip(chunk.values.chunks_exact(4)) {
-                        *value += f32::from_le_bytes([raw[0], raw[1], raw[2], raw[3]]);
-                    }
-                } else {
-                    for (value, raw) in target.iter_mut().zip(chunk.values.chunks_exact(4)) {
-                        *value = f32::from_le_bytes([raw[0], raw[1], raw[2], raw[3]]);
-                    }
+                encoding.absorb(a, target, &chunk.values, step < n - 1);
+                if step == n - 2 {
+                    // This rank owns the segment now: what it keeps is what the others get.
+                    encoding.round_owned(a, target);
                 }
                 if step + 1 < steps {
-                    self.send(step as u32 + 1, segment, a, &values[a..b])?;
-                    bytes_sent += ((b - a) * 4) as u64;
+                    bytes_sent += self.send(step as u32 + 1, segment, a, target, &encoding)? as u64;
                 }
             }
         }
@@ -371,10 +387,11 @@ impl Ring {
         segment: usize,
         begin: usize,
         end: usize,
+        encoding: &Encoding,
     ) -> Result<(), CollectiveError> {
         let left = (self.rank + self.world - 1) % self.world;
         let bad = |detail: String| Err(CollectiveError::BadChunk { rank: left, detail });
-        let expected_bytes = (end - begin) * 4;
+        let expected_bytes = encoding.chunk_bytes(begin, end);
         if chunk.sender as usize != left {
             return bad(format!(
                 "its stream carried a chunk claiming to be from rank {}",
@@ -398,9 +415,10 @@ impl Ring {
         }
         if chunk.values.len() != expected_bytes {
             return bad(format!(
-                "{} bytes for segment {segment} at offset {begin}, expected {expected_bytes} ({} values)",
+                "{} bytes for segment {segment} at offset {begin}, expected {expected_bytes} ({} values, {} on the wire)",
                 chunk.values.len(),
-                end - begin
+                end - begin,
+                encoding.wire.name()
             ));
         }
         Ok(())

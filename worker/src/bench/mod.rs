@@ -1,5 +1,7 @@
-//! One rank of the all-reduce benchmark: joins a fixed ring on loopback and times all-reduces
-//! of several sizes. `benches/allreduce.rs` starts the processes and prints the figures.
+//! The benchmarks' ranks: `allreduce-bench` joins a fixed ring and times all-reduces of
+//! several sizes (`benches/allreduce.rs` starts the processes and prints the figures);
+//! `path-bench` ([`path`]) steps the whole data path on a model's layout with the compute
+//! replaced by a wait (`scripts/bench-scaling.sh` starts the ranks).
 
 use std::time::Duration;
 
@@ -7,18 +9,75 @@ use tokio_util::sync::CancellationToken;
 
 use crate::collective::{CollectiveService, Link, Ring, RingKeys, spawn_server};
 
+pub mod path;
+
 /// Token of the benchmark's private ring.
 const BENCH_TOKEN: &str = "allreduce-bench";
 
-/// The flags of `xfactor-worker allreduce-bench`.
+/// Where a benchmark rank stands in its ring, and its runtime.
 #[derive(Debug, Clone, clap::Args)]
-pub struct BenchArgs {
+pub struct RankArgs {
     /// This process's rank: its index in --peers
     #[arg(long, value_name = "R")]
     pub rank: usize,
     /// Every rank's HOST:PORT, comma-separated, in rank order
     #[arg(long, value_name = "A,B,...", value_delimiter = ',', required = true)]
     pub peers: Vec<String>,
+    /// I/O threads of the runtime (1, as the worker daemon uses)
+    #[arg(
+        long,
+        value_name = "N",
+        default_value_t = 1,
+        value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..)
+    )]
+    pub threads: usize,
+}
+
+impl RankArgs {
+    /// The runtime of `--threads` I/O threads, after checking the rank is among the peers.
+    fn runtime(&self) -> anyhow::Result<tokio::runtime::Runtime> {
+        if self.rank >= self.peers.len() {
+            anyhow::bail!(
+                "--rank {} is not below the {} peers given",
+                self.rank,
+                self.peers.len()
+            );
+        }
+        Ok(tokio::runtime::Builder::new_multi_thread()
+            .worker_threads(self.threads)
+            .enable_all()
+            .build()?)
+    }
+
+    /// Serves this rank's Collective service and joins the benchmark's ring (generation 1);
+    /// every rank derives the same keys, where a job's come from the coordinator.
+    async fn join(&self) -> anyhow::Result<Ring> {
+        let (rank, peers) = (self.rank, &self.peers);
+        let service = CollectiveService::default();
+        let mailbox = service.mailbox();
+        let listener = tokio::net::TcpListener::bind(&peers[rank]).await?;
+        let link = Link {
+            token: BENCH_TOKEN.into(),
+            timeout: Duration::from_secs(60),
+            tls: None,
+        };
+        spawn_server(listener, service, &link)?;
+        let left = (rank + peers.len() - 1) % peers.len();
+        let keys = RingKeys {
+            own: format!("bench-rank-{rank}"),
+            left: format!("bench-rank-{left}"),
+        };
+        let cancelled = CancellationToken::new();
+        Ok(Ring::connect(&mailbox, rank, peers, 1, &keys, &link, cancelled).await?)
+    }
+}
+
+/// The flags of `xfactor-worker allreduce-bench`.
+#[derive(Debug, Clone, clap::Args)]
+pub struct BenchArgs {
+    /// Its place in the ring
+    #[command(flatten)]
+    pub ring: RankArgs,
     /// All-reduce sizes in MB, comma-separated
     #[arg(
         long,
@@ -30,14 +89,6 @@ pub struct BenchArgs {
     /// Timed runs per size, at least (small sizes run more)
     #[arg(long, value_name = "N", default_value_t = 5)]
     pub repeats: usize,
-    /// I/O threads of the runtime (1, as the worker daemon uses)
-    #[arg(
-        long,
-        value_name = "N",
-        default_value_t = 1,
-        value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..)
-    )]
-    pub threads: usize,
     /// Values per collective chunk (by default the ring's)
     #[arg(long, value_name = "N")]
     pub chunk_values: Option<usize>,
@@ -48,11 +99,9 @@ pub struct BenchArgs {
 /// runtime of `--threads` I/O threads.
 pub fn run_rank(args: &BenchArgs) -> anyhow::Result<()> {
     let BenchArgs {
-        rank,
-        peers,
+        ring: place,
         sizes_mb: sizes,
         repeats,
-        threads,
         chunk_values,
     } = args.clone();
     if let Some(size) = sizes
@@ -61,31 +110,10 @@ pub fn run_rank(args: &BenchArgs) -> anyhow::Result<()> {
     {
         anyhow::bail!("--sizes-mb {size}: sizes must be above 0");
     }
-    if rank >= peers.len() {
-        anyhow::bail!("--rank {rank} is not below the {} peers given", peers.len());
-    }
-    let runtime = tokio::runtime::Builder::new_multi_thread()
-        .worker_threads(threads)
-        .enable_all()
-        .build()?;
+    let runtime = place.runtime()?;
+    let rank = place.rank;
     let task = runtime.spawn(async move {
-        let service = CollectiveService::default();
-        let mailbox = service.mailbox();
-        let listener = tokio::net::TcpListener::bind(&peers[rank]).await?;
-        let link = Link {
-            token: BENCH_TOKEN.into(),
-            timeout: Duration::from_secs(60),
-            tls: None,
-        };
-        spawn_server(listener, service, &link)?;
-        let cancelled = CancellationToken::new();
-        // Every rank of the benchmark derives the same keys; the job's come from the coordinator.
-        let left = (rank + peers.len() - 1) % peers.len();
-        let keys = RingKeys {
-            own: format!("bench-rank-{rank}"),
-            left: format!("bench-rank-{left}"),
-        };
-        let mut ring = Ring::connect(&mailbox, rank, &peers, 1, &keys, &link, cancelled).await?;
+        let mut ring = place.join().await?;
         if let Some(values) = chunk_values {
             ring.set_chunk_values(values);
         }
@@ -100,8 +128,8 @@ pub fn run_rank(args: &BenchArgs) -> anyhow::Result<()> {
             for run in 0..=runs {
                 // A one-value all-reduce lines the ranks up first (the peer benchmark calls
                 // MPI_Barrier), so a run is not charged for the other rank's lag.
-                ring.all_reduce(&mut [0.0]).await?;
-                let stats = ring.all_reduce(&mut buffer).await?;
+                ring.all_reduce(&mut [0.0], 0).await?;
+                let stats = ring.all_reduce(&mut buffer, 0).await?;
                 if run > 0 {
                     times.push(stats.seconds);
                 }

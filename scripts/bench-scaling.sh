@@ -1,0 +1,164 @@
+#!/usr/bin/env bash
+# The data path's scaling benchmark (issue 40; README, "The data path"). Needs root: every
+# rank runs in a network namespace of its own, joined to a bridge by a veth whose egress is
+# shaped with tc (netem rate and delay).
+#
+# A cell models N GPU hosts on links of L Gbit/s: each rank is `xfactor-worker path-bench`,
+# the worker's real data path (flatten, local reduction, ring, AdamW update, checksum) on the
+# paper model's parameter layout, with the forward and backward pass replaced by a wait of
+# JAX's H200 step (0.47 s). The link is shaped to SIM_MBIT and the payload scaled down by
+# the same factor (SIM_MBIT / L), so the ring takes as long as the real one would while two
+# cores never saturate (each core's use is logged; a cell where one was busy above 90% is
+# refused). Beside each cell's weak-scaling efficiency (compute / step) it prints an analytic
+# ring without overlap: bus bandwidth 0.9 x link, 2 (N - 1) / N of the payload each way, and
+# 2 (N - 1) hops of the shaped delay. N = 2 at 100 Gbit/s runs first, as the calibration.
+#
+# Then, unscaled and unshaped, the host path at the paper's size (1.22 GB of float32) between
+# two ranks on loopback: copy, local reduction, ring, update, checksum, in seconds and GB/s.
+#
+# Usage: sudo -E scripts/bench-scaling.sh [--smoke] [--no-build] [--ranks 2,4,8]
+#            [--links 25,100,400] [--wires f32,bf16] [--steps N] [--skip-host-path]
+# --smoke: one small cell (N = 2, 100 Gbit/s, float32, 2 steps) and no host path: CI's check.
+# Every figure is one key=value line.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+source scripts/env.sh
+
+RANKS=2,4,8
+LINKS=25,100,400
+WIRES=f32,bf16
+STEPS=4
+BUILD=1
+HOST_PATH=1
+SIM_MBIT=100
+DELAY_US=50
+COMPUTE_S=0.47
+PAPER_VALUES=305178624
+while [ $# -gt 0 ]; do
+    case "$1" in
+        --smoke) RANKS=2 LINKS=100 WIRES=f32 STEPS=2 HOST_PATH=0 ;;
+        --no-build) BUILD=0 ;;
+        --ranks) RANKS="$2"; shift ;;
+        --links) LINKS="$2"; shift ;;
+        --wires) WIRES="$2"; shift ;;
+        --steps) STEPS="$2"; shift ;;
+        --skip-host-path) HOST_PATH=0 ;;
+        *) echo "bench-scaling: unknown argument $1" >&2; exit 2 ;;
+    esac
+    shift
+done
+
+if [ "$(id -u)" != 0 ]; then
+    echo "bench-scaling: needs root for network namespaces and tc; run: sudo -E $0 $*" >&2
+    echo "bench=scaling refused=not_root"
+    exit 0
+fi
+for tool in ip tc; do
+    command -v "$tool" >/dev/null || { echo "bench-scaling: $tool is missing (iproute2)" >&2; exit 2; }
+done
+if [ "$BUILD" = 1 ]; then
+    cargo build --release -p worker --bin xfactor-worker
+fi
+WORKER="$CARGO_TARGET_DIR/release/xfactor-worker"
+SCRATCH="$(mktemp -d)"
+LAYOUT="$SCRATCH/paper-layout.txt"
+BRIDGE=xfbench0
+MAX_RANKS=$(tr ',' '\n' <<<"$RANKS" | sort -n | tail -1)
+
+cleanup() {
+    for r in $(seq 0 $((MAX_RANKS - 1))); do ip netns del "xfb$r" 2>/dev/null || true; done
+    ip link del "$BRIDGE" 2>/dev/null || true
+    rm -rf "$SCRATCH"
+}
+trap cleanup EXIT
+
+# The namespaces: rank r at 10.77.0.(r+1) behind veth xfbv<r>, all on one bridge.
+setup_network() {
+    ip link add "$BRIDGE" type bridge
+    ip link set "$BRIDGE" up
+    for r in $(seq 0 $((MAX_RANKS - 1))); do
+        ip netns add "xfb$r"
+        ip link add "xfbv$r" type veth peer name eth0 netns "xfb$r"
+        ip link set "xfbv$r" master "$BRIDGE" up
+        ip -n "xfb$r" addr add "10.77.0.$((r + 1))/24" dev eth0
+        ip -n "xfb$r" link set eth0 up
+        ip -n "xfb$r" link set lo up
+    done
+}
+
+# Every rank's egress limited to $1 Mbit/s with $2 us of delay.
+shape() {
+    for r in $(seq 0 $((MAX_RANKS - 1))); do
+        tc -n "xfb$r" qdisc replace dev eth0 root netem delay "${2}us" rate "${1}mbit" limit 100000
+    done
+}
+
+# Busy and total jiffies of every core, one "busy total" pair per line.
+core_jiffies() {
+    awk '/^cpu[0-9]/ { busy = $2 + $3 + $4 + $7 + $8; total = busy + $5 + $6; print busy, total }' /proc/stat
+}
+
+# The busiest core's share between two core_jiffies readings.
+busiest_core() {
+    paste -d' ' <(echo "$1") <(echo "$2") | awk '{ share = ($3 - $1) / (($4 - $2) + 1e-9); if (share > max) max = share } END { printf "%.3f", max }'
+}
+
+field() { tr ' ' '\n' <<<"$1" | sed -n "s/^$2=//p"; }
+
+# One cell: N ranks, link L Gbit/s, wire W. Prints the cell's line.
+cell() {
+    local n=$1 link=$2 wire=$3
+    local scale chunk peers="" line before after busy
+    scale=$(awk -v s="$SIM_MBIT" -v l="$link" 'BEGIN { printf "%.8f", s / (l * 1000) }')
+    chunk=$(awk -v f="$scale" 'BEGIN { c = int(262144 * f); if (c < 1024) c = 1024; print c }')
+    for r in $(seq 0 $((n - 1))); do peers="$peers${peers:+,}10.77.0.$((r + 1)):7100"; done
+    before=$(core_jiffies)
+    local pids=()
+    for r in $(seq 0 $((n - 1))); do
+        ip netns exec "xfb$r" "$WORKER" path-bench --rank "$r" --peers "$peers" \
+            --scale "$scale" --compute-s "$COMPUTE_S" --steps "$STEPS" --wire "$wire" \
+            --chunk-values "$chunk" --layout-file "$LAYOUT" >"$SCRATCH/rank-$r.out" &
+        pids+=($!)
+    done
+    for pid in "${pids[@]}"; do wait "$pid"; done
+    after=$(core_jiffies)
+    busy=$(busiest_core "$before" "$after")
+    line=$(grep '^bench=data_path' "$SCRATCH/rank-0.out")
+    awk -v line="$line" -v n="$n" -v link="$link" -v wire="$wire" -v busy="$busy" \
+        -v sim="$SIM_MBIT" -v delay="$DELAY_US" -v compute="$COMPUTE_S" -v values="$PAPER_VALUES" \
+        -v step="$(field "$line" step_s)" -v ring="$(field "$line" ring_s)" 'BEGIN {
+        width = (wire == "bf16") ? 2 : 4
+        bytes = values * width
+        model_ring = 2 * (n - 1) / n * bytes / (0.9 * link * 1e9 / 8) + 2 * (n - 1) * delay * 1e-6
+        model = compute / (compute + model_ring)
+        measured = compute / step
+        refused = (busy > 0.9) ? "core_saturated" : "no"
+        printf "bench=scaling ranks=%d link_gbit=%d wire=%s shaped_mbit=%d delay_us=%d payload_real_gb=%.3f step_s=%.4f ring_s=%.4f efficiency=%.4f model_ring_s=%.4f model_efficiency=%.4f deviation=%.4f busiest_core=%s refused=%s\n", n, link, wire, sim, delay, bytes / 1e9, step, ring, measured, model_ring, model, (measured - model) / model, busy, refused
+    }'
+}
+
+setup_network
+shape "$SIM_MBIT" "$DELAY_US"
+echo "bench=scaling_config ranks=$RANKS links_gbit=$LINKS wires=$WIRES steps=$STEPS shaped_mbit=$SIM_MBIT delay_us=$DELAY_US compute_s=$COMPUTE_S cores=$(nproc)"
+# The calibration cell first: N = 2 at 100 Gbit/s in float32.
+echo "calibration: $(cell 2 100 f32)"
+for n in ${RANKS//,/ }; do
+    for link in ${LINKS//,/ }; do
+        for wire in ${WIRES//,/ }; do
+            if [ "$n" = 2 ] && [ "$link" = 100 ] && [ "$wire" = f32 ]; then continue; fi
+            cell "$n" "$link" "$wire"
+        done
+    done
+done
+
+if [ "$HOST_PATH" = 1 ]; then
+    # Unscaled, unshaped: two ranks on loopback with the paper's 1.22 GB, no compute.
+    peers="127.0.0.1:7201,127.0.0.1:7202"
+    for r in 0 1; do
+        "$WORKER" path-bench --rank "$r" --peers "$peers" --compute-s 0 --steps 3 \
+            --layout-file "$LAYOUT" --threads 2 >"$SCRATCH/host-$r.out" &
+        pids[$r]=$!
+    done
+    wait "${pids[0]}" "${pids[1]}"
+    sed 's/^bench=data_path/bench=host_path/' "$SCRATCH/host-0.out"
+fi
