@@ -144,44 +144,39 @@ pub fn flatten_parameters<M: Module>(module: &M) -> Vec<f32> {
 /// CRC-32 of every parameter's little-endian `f32` bytes in module order: equal on two
 /// processes exactly when their parameters are bitwise equal (up to CRC collisions).
 ///
-/// Each parameter is read from its device once and its bytes hashed in bulk, split over the
-/// host's cores, the parts joined with CRC-32's combination rule: the same value as one
-/// CRC over the concatenated bytes, at memory speed (the paper model's 1.22 GB took 2.6 s
-/// fed four bytes at a time; `benches/host_path.rs` measures both). The host copies of all
-/// parameters are held while they are hashed.
+/// The parameters are cut into as many runs of whole tensors as the host has cores, about
+/// equal in bytes; each run is read to the host one tensor at a time and hashed in bulk on a
+/// thread of its own, and the runs' CRCs are joined with CRC-32's combination rule. That is
+/// the same value as one CRC over the concatenated bytes, at memory speed (the paper model's
+/// 1.22 GB took 2.6 s fed four bytes at a time; `benches/checksum.rs` measures both), holding
+/// one tensor's host copy per thread at a time.
 pub fn parameter_checksum<M: Module>(module: &M) -> u32 {
-    let host = parameters_on_host(module);
-    let pieces: Vec<&[u8]> = host.iter().map(TensorData::as_bytes).collect();
-    let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
-    crc32_of_pieces(&pieces, threads)
-}
-
-/// Every float parameter of `module` read to the host, in module order.
-pub fn parameters_on_host<M: Module>(module: &M) -> Vec<TensorData> {
-    struct Read(Vec<TensorData>);
-    impl ModuleVisitor for Read {
+    struct Collect(Vec<Tensor<1>>);
+    impl ModuleVisitor for Collect {
         fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
-            self.0.push(param.val().into_data());
+            self.0.push(param.val().reshape([-1]));
         }
     }
-    let mut read = Read(Vec::new());
-    module.visit(&mut read);
-    read.0
+    let mut collect = Collect(Vec::new());
+    module.visit(&mut collect);
+    let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
+    crc32_of_tensors(&collect.0, threads)
 }
 
-/// CRC-32 of the concatenation of `pieces`, hashed in `threads` ranges of about equal bytes
-/// on threads of their own and combined in order.
-pub fn crc32_of_pieces(pieces: &[&[u8]], threads: usize) -> u32 {
-    let total: usize = pieces.iter().map(|piece| piece.len()).sum();
-    let threads = threads.clamp(1, total.div_ceil(1 << 20).max(1));
-    let ranges: Vec<Vec<&[u8]>> = split_bytes(pieces, total.div_ceil(threads));
+/// CRC-32 of the bytes of `tensors` one after another, in `threads` runs of whole tensors
+/// hashed side by side and combined in order.
+fn crc32_of_tensors(tensors: &[Tensor<1>], threads: usize) -> u32 {
+    let sizes: Vec<usize> = tensors.iter().map(|t| t.shape().num_elements()).collect();
     let hashers: Vec<crc32fast::Hasher> = std::thread::scope(|scope| {
-        let handles: Vec<_> = ranges
-            .iter()
-            .map(|range| {
+        let handles: Vec<_> = runs(&sizes, threads)
+            .into_iter()
+            .map(|run| {
+                let run = &tensors[run];
                 scope.spawn(move || {
                     let mut hasher = crc32fast::Hasher::new();
-                    range.iter().for_each(|part| hasher.update(part));
+                    for tensor in run {
+                        hasher.update(tensor.clone().into_data().as_bytes());
+                    }
                     hasher
                 })
             })
@@ -199,28 +194,24 @@ pub fn crc32_of_pieces(pieces: &[&[u8]], threads: usize) -> u32 {
     combined.finalize()
 }
 
-/// `pieces` cut into consecutive ranges of at most `per_range` bytes (a piece may straddle
-/// two ranges), in order.
-fn split_bytes<'a>(pieces: &[&'a [u8]], per_range: usize) -> Vec<Vec<&'a [u8]>> {
-    let per_range = per_range.max(1);
-    let mut ranges = vec![Vec::new()];
-    let mut room = per_range;
-    for piece in pieces {
-        let mut rest: &[u8] = piece;
-        while !rest.is_empty() {
-            if room == 0 {
-                ranges.push(Vec::new());
-                room = per_range;
-            }
-            let (head, tail) = rest.split_at(rest.len().min(room));
-            if let Some(range) = ranges.last_mut() {
-                range.push(head);
-            }
-            room -= head.len();
-            rest = tail;
+/// `sizes` cut into at most `parts` consecutive runs of about equal sum (each run closes
+/// once it reaches its share), covering every index in order.
+fn runs(sizes: &[usize], parts: usize) -> Vec<std::ops::Range<usize>> {
+    let total: usize = sizes.iter().sum();
+    let share = total.div_ceil(parts.max(1)).max(1);
+    let mut runs = Vec::new();
+    let (mut start, mut filled) = (0, 0);
+    for (index, size) in sizes.iter().enumerate() {
+        filled += size;
+        if filled >= share {
+            runs.push(start..index + 1);
+            (start, filled) = (index + 1, 0);
         }
     }
-    ranges
+    if start < sizes.len() {
+        runs.push(start..sizes.len());
+    }
+    runs
 }
 
 #[cfg(test)]
@@ -267,24 +258,30 @@ mod tests {
     }
 
     #[test]
-    fn pieces_hash_alike_however_they_are_split_over_threads() {
-        let bytes: Vec<u8> = (0..5_000_003u32).map(|i| (i * 7 % 251) as u8).collect();
-        let pieces: Vec<&[u8]> = vec![&bytes[..3], &bytes[3..2_100_000], &bytes[2_100_000..]];
-        let whole = crc32fast::hash(&bytes);
-        for threads in [1, 2, 3, 8] {
+    fn runs_cover_every_tensor_in_order_and_hash_alike_however_many() {
+        assert_eq!(runs(&[5, 1, 1, 5, 4], 2), [0..3, 3..5]);
+        assert_eq!(runs(&[10, 1], 4), [0..1, 1..2]);
+        assert_eq!(runs(&[], 3), Vec::<std::ops::Range<usize>>::new());
+        let device = Device::flex();
+        let tensors: Vec<Tensor<1>> = (0..7)
+            .map(|i| {
+                let values: Vec<f32> = (0..1000 * (i + 1))
+                    .map(|v| v as f32 * 0.37 - i as f32)
+                    .collect();
+                Tensor::from_data(TensorData::new(values, [1000 * (i + 1)]), &device)
+            })
+            .collect();
+        let mut whole = crc32fast::Hasher::new();
+        tensors
+            .iter()
+            .for_each(|t| whole.update(t.clone().into_data().as_bytes()));
+        let whole = whole.finalize();
+        for threads in [1, 2, 3, 16] {
             assert_eq!(
-                crc32_of_pieces(&pieces, threads),
+                crc32_of_tensors(&tensors, threads),
                 whole,
                 "{threads} threads"
             );
         }
-        assert_eq!(crc32_of_pieces(&[], 4), crc32fast::hash(&[]));
-        let ranges = split_bytes(&pieces, 2_000_000);
-        assert_eq!(ranges.len(), 3);
-        assert!(
-            ranges
-                .iter()
-                .all(|range| range.iter().map(|p| p.len()).sum::<usize>() <= 2_000_000)
-        );
     }
 }

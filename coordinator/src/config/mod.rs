@@ -10,7 +10,7 @@ use settings::evaluation::EvaluationSpec;
 use settings::model::{ConfigError as ModelError, PoseConditioning};
 use settings::objective::{ObjectiveSettings, ObjectiveVariant, Stage1Config, Stage2Config};
 use settings::optim::{AdamWConfig, Schedule};
-use settings::work::WireFormat;
+use settings::work::{ChecksumEvery, WireFormat};
 use settings::{DeviceSet, Phase, XFactorConfig};
 
 mod checks;
@@ -373,9 +373,10 @@ pub struct WorkersConfig {
     /// A worker blamed for a failed generation sits out this long before it may join a group
     /// again, doubled for each further failure (at most an hour).
     pub exclusion_s: NonNegative,
-    /// Parameter checksums every this many steps (README, "The data path": their cost at the
-    /// paper's size decides the default).
-    pub checksum_every: Positive,
+    /// Parameter checksums every this many steps, or `auto` (the default): the fewest steps
+    /// that keep them under 2% of the steps' time for the model's size (README, "The data
+    /// path").
+    pub checksum_every: ChecksumEvery,
     /// How the ring carries gradients: `f32` (every bit) or `bf16` (half the bytes, summed
     /// in float32).
     pub allreduce_wire: WireFormat,
@@ -395,7 +396,7 @@ impl Default for WorkersConfig {
             regroup_grace_s: NonNegative(2.0),
             stall_timeout_s: NonNegative(120.0),
             exclusion_s: NonNegative(30.0),
-            checksum_every: Positive(1),
+            checksum_every: ChecksumEvery::Auto,
             allreduce_wire: WireFormat::F32,
         }
     }

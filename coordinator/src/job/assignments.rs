@@ -53,7 +53,7 @@ pub fn train(
             start: start(plan, durable, phase),
             checkpoint_prefix: prefix(plan, phase.name()),
             checkpoint_every: config.checkpoint.every.0,
-            checksum_every: config.workers.checksum_every.0,
+            checksum_every: config.workers.checksum_every,
             lpips_weights: stage.lpips_weights.clone(),
             device: config.workers.device,
             model: plan.model.clone(),

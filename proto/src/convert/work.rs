@@ -7,8 +7,8 @@ use settings::data::DataSpec;
 use settings::evaluation::EvaluationSpec;
 use settings::train::TrainConfig;
 use settings::work::{
-    Assignment, CheckpointToEvaluate, EvaluateWork, FailureCause, GenerationFailure, RingSecrets,
-    TrainStart, TrainWork, WireFormat, Work,
+    Assignment, CheckpointToEvaluate, ChecksumEvery, EvaluateWork, FailureCause, GenerationFailure,
+    RingSecrets, TrainStart, TrainWork, WireFormat, Work,
 };
 use settings::{DeviceSet, Phase};
 
@@ -90,7 +90,10 @@ impl TryFrom<&v1::TrainAssignment> for TrainWork {
             checkpoint_prefix: non_empty(&wire.checkpoint_prefix)
                 .ok_or(ConvertError::Missing("train.checkpoint_prefix"))?,
             checkpoint_every: positive(wire.checkpoint_every, "train.checkpoint_every")?,
-            checksum_every: positive(wire.checksum_every, "train.checksum_every")?,
+            checksum_every: match wire.checksum_every {
+                0 => ChecksumEvery::Auto,
+                steps => ChecksumEvery::Steps(steps),
+            },
             lpips_weights: non_empty(&wire.lpips_weights),
             device: device_from_wire(wire.device, "train.device")?,
             model: wire
@@ -137,7 +140,10 @@ impl From<&TrainWork> for v1::TrainAssignment {
             init_weights_from,
             checkpoint_prefix: work.checkpoint_prefix.clone(),
             checkpoint_every: work.checkpoint_every,
-            checksum_every: work.checksum_every,
+            checksum_every: match work.checksum_every {
+                ChecksumEvery::Auto => 0,
+                ChecksumEvery::Steps(steps) => steps,
+            },
             lpips_weights: work.lpips_weights.clone().unwrap_or_default(),
             device: device_to_wire(work.device) as i32,
             model: Some((&work.model).into()),

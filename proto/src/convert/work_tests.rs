@@ -7,8 +7,8 @@ use settings::objective::Stage2Config;
 use settings::optim::{AdamWConfig, Schedule};
 use settings::train::{StageObjective, TrainConfig};
 use settings::work::{
-    Assignment, CheckpointToEvaluate, EvaluateWork, FailureCause, GenerationFailure, RingSecrets,
-    TrainStart, TrainWork, WireFormat, Work,
+    Assignment, CheckpointToEvaluate, ChecksumEvery, EvaluateWork, FailureCause, GenerationFailure,
+    RingSecrets, TrainStart, TrainWork, WireFormat, Work,
 };
 use settings::{DeviceChoice, DeviceSet, Phase, XFactorConfig};
 
@@ -24,7 +24,7 @@ fn train_work(start: TrainStart, ring: Option<RingSecrets>) -> TrainWork {
         start,
         checkpoint_prefix: "s3://bucket/job/stage2".into(),
         checkpoint_every: 5,
-        checksum_every: 3,
+        checksum_every: ChecksumEvery::Steps(3),
         lpips_weights: Some("lpips.safetensors".into()),
         device: DeviceChoice::Wgpu,
         model: XFactorConfig::tiny(16),
@@ -144,11 +144,10 @@ fn missing_parts_of_a_train_assignment_are_named() {
 #[test]
 fn malformed_train_assignments_are_refused_with_the_field() {
     let whole = wire(&train_work(TrainStart::Fresh, None));
-    let cases: [Breakage<v1::TrainAssignment>; 9] = [
+    let cases: [Breakage<v1::TrainAssignment>; 8] = [
         (|w| w.rank = 2, "train.rank"),
         (|w| w.world_size = 3, "train.peers"),
         (|w| w.checkpoint_every = 0, "train.checkpoint_every"),
-        (|w| w.checksum_every = 0, "train.checksum_every"),
         (|w| w.phase = v1::Phase::Evaluate as i32, "train.phase"),
         (
             |w| {

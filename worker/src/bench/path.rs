@@ -39,7 +39,8 @@ pub struct PathBenchArgs {
     /// How the ring carries the gradients
     #[arg(long, value_name = "f32|bf16", default_value = "f32", value_parser = parse_wire)]
     pub wire: WireFormat,
-    /// A parameter checksum every this many steps
+    /// A parameter checksum every this many steps (the benchmark checks every step unless
+    /// told otherwise, so its figures include the checksum)
     #[arg(long, value_name = "N", default_value_t = 1)]
     pub checksum_every: u64,
     /// Values per collective chunk (by default the ring's)
@@ -147,7 +148,7 @@ pub fn run_rank(args: &PathBenchArgs) -> anyhow::Result<()> {
         ring.set_chunk_values(values);
     }
     let plan = ChecksumPlan {
-        every: args.checksum_every,
+        every: settings::work::ChecksumEvery::Steps(args.checksum_every),
         total_steps: u64::MAX,
     };
     let mut path = DataPath::new(ring.with_wire(args.wire), plan, None);

@@ -24,6 +24,7 @@ use std::time::Instant;
 
 use data::BatchSource;
 use proto::v1::Activity;
+use settings::work::ChecksumEvery;
 use tokio::runtime::Runtime;
 use trainer_core::trainer::{SliceLoss, StepMetrics};
 
@@ -123,16 +124,17 @@ pub enum StepError {
 /// When the parameter checksum is due: every `every` steps and after the stage's last.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct ChecksumPlan {
-    /// The interval in steps (0 is taken as 1).
-    pub every: u64,
+    /// The interval, or `auto` from the model's size.
+    pub every: ChecksumEvery,
     /// The stage's last step (counted from 1).
     pub total_steps: u64,
 }
 
 impl ChecksumPlan {
-    /// Whether the checksum is due after step `done` (counted from 1).
-    pub fn due(&self, done: u64) -> bool {
-        done.is_multiple_of(self.every.max(1)) || done == self.total_steps
+    /// Whether the checksum is due after step `done` (counted from 1) of a model of
+    /// `parameters` values.
+    pub fn due(&self, done: u64, parameters: usize) -> bool {
+        done.is_multiple_of(self.every.steps(parameters)) || done == self.total_steps
     }
 }
 
@@ -188,7 +190,7 @@ impl DataPath {
             .ok_or(StepError::NoReplicas)?;
         phases.apply_s = applying.elapsed().as_secs_f64();
         let checking = Instant::now();
-        let checksum = if self.checksums.due(step + 1) {
+        let checksum = if self.checksums.due(step + 1, parameters) {
             Some(checksum_all(replicas, step)?)
         } else {
             None

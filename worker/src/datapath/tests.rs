@@ -40,7 +40,7 @@ fn lone_ring(runtime: &Runtime) -> Ring {
 
 fn every_step() -> ChecksumPlan {
     ChecksumPlan {
-        every: 1,
+        every: ChecksumEvery::Steps(1),
         total_steps: 100,
     }
 }
@@ -226,16 +226,19 @@ fn replicas_that_disagree_after_the_update_fail_the_step() {
 #[test]
 fn checksums_fall_every_n_steps_and_after_the_last() {
     let plan = ChecksumPlan {
-        every: 4,
+        every: ChecksumEvery::Steps(4),
         total_steps: 10,
     };
-    let due: Vec<u64> = (1..=10).filter(|&done| plan.due(done)).collect();
+    let due: Vec<u64> = (1..=10).filter(|&done| plan.due(done, 1000)).collect();
     assert_eq!(due, [4, 8, 10]);
-    let every = ChecksumPlan {
-        every: 0,
-        total_steps: 10,
+    let auto = ChecksumPlan {
+        every: ChecksumEvery::Auto,
+        total_steps: 100,
     };
-    assert!(every.due(3), "an interval of 0 means every step");
+    assert!(auto.due(3, 1000), "a small model is checked every step");
+    let paper = 305_178_624;
+    let due: Vec<u64> = (1..=40).filter(|&done| auto.due(done, paper)).collect();
+    assert_eq!(due, [19, 38], "the paper's model about every 19 steps");
 }
 
 #[test]
