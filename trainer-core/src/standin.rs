@@ -70,22 +70,33 @@ impl LayoutModel {
         parameter_count(&self.parameters)
     }
 
-    /// The fixed gradients copied from the device into `out`, as a backward pass's are.
-    pub fn gradients_into(&self, out: &mut [f32]) -> Result<(), LayoutError> {
+    /// Fresh gradients made on the device from the fixed ones (one element-wise pass, so
+    /// that no one else holds them, as a backward pass's output), as a backward pass returns
+    /// them.
+    pub fn backward(&self) -> GradientsParams {
         let mut grads = GradientsParams::new();
         for (parameter, gradient) in self.parameters.iter().zip(&self.gradients) {
-            grads.register(parameter.id, gradient.clone());
+            grads.register(parameter.id, gradient.clone().mul_scalar(1.0));
         }
-        flatten_gradients_into(&self.parameters, &grads, out)
+        grads
     }
 
-    /// One AdamW update with the summed gradients `sum`, as a replica applies them.
-    pub fn apply(&mut self, sum: &[f32], learning_rate: f64) -> Result<UpdateReport, LayoutError> {
-        let grads = unflatten_gradients(&self.parameters, sum)?;
+    /// `grads` (from [`LayoutModel::backward`]) copied from the device into `out`.
+    pub fn gradients_into(&self, grads: GradientsParams, out: &mut [f32]) -> Result<(), LayoutError> {
+        flatten_gradients_into(&self.parameters, grads, out)
+    }
+
+    /// The summed gradients `sum` copied to the device, one tensor per parameter.
+    pub fn upload(&self, sum: &[f32]) -> Result<GradientsParams, LayoutError> {
+        unflatten_gradients(&self.parameters, sum)
+    }
+
+    /// One AdamW update with gradients from [`LayoutModel::upload`], as a replica applies them.
+    pub fn update(&mut self, grads: &GradientsParams, learning_rate: f64) -> UpdateReport {
         let parameters = std::mem::take(&mut self.parameters);
-        let (parameters, report) = self.optimizer.step(parameters, &grads, learning_rate);
+        let (parameters, report) = self.optimizer.step(parameters, grads, learning_rate);
         self.parameters = parameters;
-        Ok(report)
+        report
     }
 
     /// The parameters, a module in their own right.
@@ -137,16 +148,17 @@ mod tests {
                 && half * 2 <= standin.parameter_count() + 2 * rounding
         );
         let mut gradients = vec![0.0; standin.parameter_count()];
-        standin.gradients_into(&mut gradients).unwrap();
+        standin.gradients_into(standin.backward(), &mut gradients).unwrap();
         assert!(gradients.iter().any(|g| *g != 0.0));
         let before = standin.checksum();
-        let report = standin.apply(&gradients, 1e-3).unwrap();
+        let grads = standin.upload(&gradients).unwrap();
+        let report = standin.update(&grads, 1e-3);
         assert!(report.applied && report.grad_norm > 0.0);
         assert_ne!(
             standin.checksum(),
             before,
             "the update moved the parameters"
         );
-        assert!(standin.apply(&gradients[1..], 1e-3).is_err());
+        assert!(standin.upload(&gradients[1..]).is_err());
     }
 }

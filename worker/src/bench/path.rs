@@ -12,7 +12,9 @@ use trainer_core::standin::{LayoutModel, layout_of};
 use trainer_core::trainer::{SliceLoss, StepMetrics};
 
 use super::RankArgs;
-use crate::datapath::{ChecksumPlan, Computed, DataPath, ReplicaError, ReplicaModel, StepFigures};
+use crate::datapath::{
+    Applied, ChecksumPlan, Computed, DataPath, ReplicaError, ReplicaModel, StepFigures,
+};
 use crate::progress::Progress;
 
 /// The flags of `xfactor-worker path-bench`.
@@ -83,8 +85,9 @@ impl ReplicaModel for WaitingReplica {
         out: &mut [f32],
     ) -> Result<Computed, ReplicaError> {
         std::thread::sleep(self.compute);
+        let grads = self.model.backward();
         let copying = Instant::now();
-        self.model.gradients_into(out)?;
+        self.model.gradients_into(grads, out)?;
         Ok(Computed {
             loss: SliceLoss {
                 total: 0.25,
@@ -95,16 +98,22 @@ impl ReplicaModel for WaitingReplica {
         })
     }
 
-    fn apply(&mut self, sum: &[f32], loss: f32) -> Result<StepMetrics, ReplicaError> {
+    fn apply(&mut self, sum: &[f32], loss: f32) -> Result<Applied, ReplicaError> {
         let learning_rate = 1e-4;
-        let report = self.model.apply(sum, learning_rate)?;
+        let uploading = Instant::now();
+        let grads = self.model.upload(sum)?;
+        let upload_s = uploading.elapsed().as_secs_f64();
+        let report = self.model.update(&grads, learning_rate);
         self.step += 1;
-        Ok(StepMetrics {
-            step: self.step - 1,
-            loss,
-            learning_rate,
-            grad_norm: report.grad_norm,
-            applied: report.applied,
+        Ok(Applied {
+            metrics: StepMetrics {
+                step: self.step - 1,
+                loss,
+                learning_rate,
+                grad_norm: report.grad_norm,
+                applied: report.applied,
+            },
+            upload_s,
         })
     }
 
@@ -162,10 +171,8 @@ pub fn run_rank(args: &PathBenchArgs) -> anyhow::Result<()> {
         }
     }
     if args.ring.rank == 0 {
-        println!(
-            "{}",
-            summary(args, replicas[0].model.parameter_count(), &steps)
-        );
+        let parameters = replicas[0].model.parameter_count();
+        println!("bench=data_path {}", summary(args, parameters, &steps));
     }
     // Let the peers finish reading before the streams close.
     std::thread::sleep(Duration::from_millis(300));
@@ -197,7 +204,10 @@ fn layout(config: &XFactorConfig, file: Option<&std::path::Path>) -> anyhow::Res
     Ok(layout)
 }
 
-/// The figures' line: the configuration, then the median of each phase over the steps.
+/// The figures' line: the configuration, then the median of each phase over the steps. The
+/// host path is every phase but the optimizer's arithmetic (the device's work on a GPU, the
+/// CPU's here): the copy to the host, the local reduction, the ring, the upload and the
+/// checksum.
 fn summary(args: &PathBenchArgs, parameters: usize, steps: &[(f64, StepFigures)]) -> String {
     let median = |of: &dyn Fn(&(f64, StepFigures)) -> f64| {
         let mut values: Vec<f64> = steps.iter().map(of).collect();
@@ -209,16 +219,22 @@ fn summary(args: &PathBenchArgs, parameters: usize, steps: &[(f64, StepFigures)]
     let copy_s = phases(|f| f.phases.copy_s);
     let local_reduce_s = phases(|f| f.phases.local_reduce_s);
     let ring_s = phases(|f| f.phases.ring_s);
-    let apply_s = phases(|f| f.phases.apply_s);
+    let upload_s = phases(|f| f.phases.upload_s);
+    let update_s = phases(|f| f.phases.apply_s - f.phases.upload_s);
     let checksum_s = phases(|f| f.phases.checksum_s);
+    let host_path_s = phases(|f| {
+        let p = &f.phases;
+        p.copy_s + p.local_reduce_s + p.ring_s + p.upload_s + p.checksum_s
+    });
     let bytes = parameters as f64 * 4.0;
     let gb = |seconds: f64| bytes / 1e9 / seconds.max(1e-12);
     format!(
-        "bench=data_path ranks={} model={} scale={} replicas={} wire={} params={parameters} \
-         payload_mb={:.3} compute_s={:.3} steps={} step_s={step_s:.4} copy_s={copy_s:.4} \
-         copy_gbs={:.2} local_reduce_s={local_reduce_s:.4} ring_s={ring_s:.4} \
-         ring_algbw_gbs={:.3} apply_s={apply_s:.4} apply_gbs={:.2} checksum_s={checksum_s:.4} \
-         checksum_gbs={:.2} host_path_s={:.4} efficiency={:.4}",
+        "ranks={} model={} scale={} replicas={} wire={} params={parameters} payload_mb={:.3} \
+         compute_s={:.3} steps={} step_s={step_s:.4} copy_s={copy_s:.4} copy_gbs={:.2} \
+         local_reduce_s={local_reduce_s:.4} ring_s={ring_s:.4} ring_algbw_gbs={:.3} \
+         upload_s={upload_s:.4} upload_gbs={:.2} update_s={update_s:.4} \
+         checksum_s={checksum_s:.4} checksum_gbs={:.2} host_path_s={host_path_s:.4} \
+         efficiency={:.4}",
         args.ring.peers.len(),
         args.model,
         args.scale,
@@ -229,9 +245,8 @@ fn summary(args: &PathBenchArgs, parameters: usize, steps: &[(f64, StepFigures)]
         steps.len(),
         gb(copy_s),
         gb(ring_s),
-        gb(apply_s),
+        gb(upload_s),
         gb(checksum_s),
-        step_s - args.compute_s,
         args.compute_s / step_s,
     )
 }

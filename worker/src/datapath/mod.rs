@@ -28,7 +28,7 @@ use settings::work::ChecksumEvery;
 use tokio::runtime::Runtime;
 use trainer_core::trainer::{SliceLoss, StepMetrics};
 
-pub use replicas::{Computed, Replica, ReplicaError, ReplicaModel};
+pub use replicas::{Applied, Computed, Replica, ReplicaError, ReplicaModel};
 
 use crate::collective::{CollectiveError, Ring};
 use crate::progress::Progress;
@@ -69,8 +69,10 @@ pub struct PhaseTimes {
     pub local_reduce_s: f64,
     /// The ring all-reduce.
     pub ring_s: f64,
-    /// Every replica's update, side by side.
+    /// Every replica's update, side by side (the upload and the optimizer).
     pub apply_s: f64,
+    /// The longest a replica spent copying the sum to its device (part of `apply_s`).
+    pub upload_s: f64,
     /// Every replica's parameter checksum, side by side (0 when none was due).
     pub checksum_s: f64,
 }
@@ -185,10 +187,11 @@ impl DataPath {
         let [loss, l1, lpips] = [0, 1, 2].map(|i| self.sum[parameters + i]);
         self.drill(step);
         let applying = Instant::now();
-        let metrics = apply_all(replicas, &self.sum[..parameters], loss)
-            .map_err(|source| StepError::Apply { step, source })?
-            .ok_or(StepError::NoReplicas)?;
+        let applied = apply_all(replicas, &self.sum[..parameters], loss)
+            .map_err(|source| StepError::Apply { step, source })?;
+        let metrics = applied.first().ok_or(StepError::NoReplicas)?.metrics;
         phases.apply_s = applying.elapsed().as_secs_f64();
+        phases.upload_s = applied.iter().map(|a| a.upload_s).fold(0.0, f64::max);
         let checking = Instant::now();
         let checksum = if self.checksums.due(step + 1, parameters) {
             Some(checksum_all(replicas, step)?)
@@ -356,24 +359,20 @@ impl InOrder {
     }
 }
 
-/// Phase 4: every replica applies `sum` on a thread of its own; the first replica's figures.
+/// Phase 4: every replica applies `sum` on a thread of its own.
 fn apply_all<R: ReplicaModel>(
     replicas: &mut [R],
     sum: &[f32],
     loss: f32,
-) -> Result<Option<StepMetrics>, ReplicaError> {
-    let results: Vec<Result<StepMetrics, ReplicaError>> = std::thread::scope(|scope| {
+) -> Result<Vec<Applied>, ReplicaError> {
+    let results: Vec<Result<Applied, ReplicaError>> = std::thread::scope(|scope| {
         let handles: Vec<_> = replicas
             .iter_mut()
             .map(|replica| scope.spawn(move || replica.apply(sum, loss)))
             .collect();
         handles.into_iter().map(join).collect()
     });
-    let mut first = None;
-    for result in results {
-        first.get_or_insert(result?);
-    }
-    Ok(first)
+    results.into_iter().collect()
 }
 
 /// Phase 5: every replica's checksum on a thread of its own; they received the same sum, so

@@ -32,6 +32,15 @@ pub struct Computed {
     pub copy_s: f64,
 }
 
+/// A replica's update, as the data path receives it.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Applied {
+    /// The optimizer's figures.
+    pub metrics: StepMetrics,
+    /// Seconds spent copying the summed gradients from the host to the device.
+    pub upload_s: f64,
+}
+
 /// One model replica of a worker as the data path drives it. Each method runs on a thread of
 /// the data path's (one per replica), so the replicas compute, apply and hash side by side.
 pub trait ReplicaModel: Send + Sync {
@@ -47,7 +56,7 @@ pub trait ReplicaModel: Send + Sync {
         out: &mut [f32],
     ) -> Result<Computed, ReplicaError>;
     /// Applies the summed gradients `sum` of the whole global batch, whose loss is `loss`.
-    fn apply(&mut self, sum: &[f32], loss: f32) -> Result<StepMetrics, ReplicaError>;
+    fn apply(&mut self, sum: &[f32], loss: f32) -> Result<Applied, ReplicaError>;
     /// CRC-32 of its parameters ([`parameter_checksum`]).
     fn checksum(&self) -> u32;
 }
@@ -83,7 +92,7 @@ impl ReplicaModel for Replica {
                 .trainer
                 .slice_gradients(source, self.first, self.count)?;
             let copying = Instant::now();
-            flatten_gradients_into(self.trainer.model(), &grads, out)?;
+            flatten_gradients_into(self.trainer.model(), grads, out)?;
             Ok(Computed {
                 loss,
                 copy_s: copying.elapsed().as_secs_f64(),
@@ -91,11 +100,15 @@ impl ReplicaModel for Replica {
         })
     }
 
-    fn apply(&mut self, sum: &[f32], loss: f32) -> Result<StepMetrics, ReplicaError> {
-        let index = self.index;
-        on_replica_stream(index, || {
+    fn apply(&mut self, sum: &[f32], loss: f32) -> Result<Applied, ReplicaError> {
+        on_replica_stream(self.index, || {
+            let uploading = Instant::now();
             let grads = unflatten_gradients(self.trainer.model(), sum)?;
-            Ok(self.trainer.apply_gradients(&grads, loss))
+            let upload_s = uploading.elapsed().as_secs_f64();
+            Ok(Applied {
+                metrics: self.trainer.apply_gradients(&grads, loss),
+                upload_s,
+            })
         })
     }
 

@@ -105,15 +105,18 @@ impl ReplicaModel for Waiting {
         })
     }
 
-    fn apply(&mut self, sum: &[f32], _loss: f32) -> Result<StepMetrics, ReplicaError> {
+    fn apply(&mut self, sum: &[f32], _loss: f32) -> Result<Applied, ReplicaError> {
         self.applied = sum.to_vec();
         self.step += 1;
-        Ok(StepMetrics {
-            step: self.step - 1,
-            loss: 0.0,
-            learning_rate: 0.0,
-            grad_norm: 0.0,
-            applied: true,
+        Ok(Applied {
+            metrics: StepMetrics {
+                step: self.step - 1,
+                loss: 0.0,
+                learning_rate: 0.0,
+                grad_norm: 0.0,
+                applied: true,
+            },
+            upload_s: 0.0,
         })
     }
 
