@@ -38,20 +38,21 @@ impl Encoding {
         wired * width(self.wire) + (end - begin - wired) * 4
     }
 
-    /// The chunk of `values`, which are the buffer's values from `begin` on.
+    /// The chunk of `values`, which are the buffer's values from `begin` on: float32 values
+    /// are copied as they lie in memory (one `memcpy` on a little-endian host), bf16 ones
+    /// rounded into place.
     pub(super) fn encode(&self, begin: usize, values: &[f32]) -> Bytes {
         let wired = self.wire_values(begin, begin + values.len());
-        let mut bytes = vec![0u8; self.chunk_bytes(begin, begin + values.len())];
-        let split = wired * width(self.wire);
-        let (head, tail) = bytes.split_at_mut(split);
+        let mut bytes = Vec::with_capacity(self.chunk_bytes(begin, begin + values.len()));
         match self.wire {
-            WireFormat::F32 => put_f32(head, &values[..wired]),
-            WireFormat::Bf16 => head
-                .chunks_exact_mut(2)
-                .zip(&values[..wired])
-                .for_each(|(raw, value)| raw.copy_from_slice(&to_bf16(*value).to_le_bytes())),
+            WireFormat::F32 => extend_f32(&mut bytes, &values[..wired]),
+            WireFormat::Bf16 => bytes.extend(
+                values[..wired]
+                    .iter()
+                    .flat_map(|value| to_bf16(*value).to_le_bytes()),
+            ),
         }
-        put_f32(tail, &values[wired..]);
+        extend_f32(&mut bytes, &values[wired..]);
         Bytes::from(bytes)
     }
 
@@ -97,11 +98,20 @@ impl Encoding {
     }
 }
 
-/// `values` as little-endian bytes into `raw` (as long as they are).
-fn put_f32(raw: &mut [u8], values: &[f32]) {
-    raw.chunks_exact_mut(4)
-        .zip(values)
-        .for_each(|(raw, value)| raw.copy_from_slice(&value.to_le_bytes()));
+/// `values` appended to `bytes` as little-endian float32.
+fn extend_f32(bytes: &mut Vec<u8>, values: &[f32]) {
+    #[cfg(target_endian = "little")]
+    {
+        // SAFETY: an f32 is 4 initialised bytes with no padding, any byte may be read as a
+        // u8, a u8 needs no alignment, and the slice covers exactly the values' memory. On a
+        // little-endian host those bytes are the little-endian encoding.
+        let raw = unsafe {
+            std::slice::from_raw_parts(values.as_ptr().cast::<u8>(), std::mem::size_of_val(values))
+        };
+        bytes.extend_from_slice(raw);
+    }
+    #[cfg(not(target_endian = "little"))]
+    bytes.extend(values.iter().flat_map(|value| value.to_le_bytes()));
 }
 
 fn f32_of(raw: &[u8]) -> f32 {
