@@ -86,11 +86,23 @@ setup_network() {
     done
 }
 
-# Every rank's egress limited to $1 Mbit/s with $2 us of delay.
+# Every rank's egress limited to $1 Mbit/s with $2 us of delay: netem where the kernel has it,
+# else a token bucket (tbf) without the delay, and DELAY_US set to what was applied.
 shape() {
+    local shaper=netem
+    tc -n xfb0 qdisc replace dev eth0 root netem delay "${2}us" rate "${1}mbit" limit 100000 2>/dev/null || shaper=tbf
+    if [ "$shaper" = tbf ]; then
+        DELAY_US=0
+        echo "bench-scaling: this kernel has no netem; links shaped by tbf, without added delay" >&2
+    fi
     for r in $(seq 0 $((MAX_RANKS - 1))); do
-        tc -n "xfb$r" qdisc replace dev eth0 root netem delay "${2}us" rate "${1}mbit" limit 100000
+        if [ "$shaper" = netem ]; then
+            tc -n "xfb$r" qdisc replace dev eth0 root netem delay "${2}us" rate "${1}mbit" limit 100000
+        else
+            tc -n "xfb$r" qdisc replace dev eth0 root tbf rate "${1}mbit" burst 64kb latency 100ms
+        fi
     done
+    SHAPER=$shaper
 }
 
 # Busy and total jiffies of every core, one "busy total" pair per line.
@@ -139,7 +151,7 @@ cell() {
 
 setup_network
 shape "$SIM_MBIT" "$DELAY_US"
-echo "bench=scaling_config ranks=$RANKS links_gbit=$LINKS wires=$WIRES steps=$STEPS shaped_mbit=$SIM_MBIT delay_us=$DELAY_US compute_s=$COMPUTE_S cores=$(nproc)"
+echo "bench=scaling_config ranks=$RANKS links_gbit=$LINKS wires=$WIRES steps=$STEPS shaper=$SHAPER shaped_mbit=$SIM_MBIT delay_us=$DELAY_US compute_s=$COMPUTE_S cores=$(nproc)"
 # The calibration cell first: N = 2 at 100 Gbit/s in float32.
 echo "calibration: $(cell 2 100 f32)"
 for n in ${RANKS//,/ }; do
@@ -151,14 +163,20 @@ for n in ${RANKS//,/ }; do
     done
 done
 
-if [ "$HOST_PATH" = 1 ]; then
-    # Unscaled, unshaped: two ranks on loopback with the paper's 1.22 GB, no compute.
-    peers="127.0.0.1:7201,127.0.0.1:7202"
+# Unscaled and unshaped: two ranks on loopback with the paper's 1.22 GB and no compute, one
+# I/O thread each (the worker daemon's), with wire $1.
+host_path() {
+    local peers="127.0.0.1:7201,127.0.0.1:7202" pids=()
     for r in 0 1; do
         "$WORKER" path-bench --rank "$r" --peers "$peers" --compute-s 0 --steps 3 \
-            --layout-file "$LAYOUT" --threads 2 >"$SCRATCH/host-$r.out" &
-        pids[$r]=$!
+            --wire "$1" --layout-file "$LAYOUT" >"$SCRATCH/host-$r.out" &
+        pids+=($!)
     done
-    wait "${pids[0]}" "${pids[1]}"
+    for pid in "${pids[@]}"; do wait "$pid"; done
     sed 's/^bench=data_path/bench=host_path/' "$SCRATCH/host-0.out"
+}
+
+if [ "$HOST_PATH" = 1 ]; then
+    host_path f32
+    host_path bf16
 fi

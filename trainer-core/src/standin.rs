@@ -82,7 +82,11 @@ impl LayoutModel {
     }
 
     /// `grads` (from [`LayoutModel::backward`]) copied from the device into `out`.
-    pub fn gradients_into(&self, grads: GradientsParams, out: &mut [f32]) -> Result<(), LayoutError> {
+    pub fn gradients_into(
+        &self,
+        grads: GradientsParams,
+        out: &mut [f32],
+    ) -> Result<(), LayoutError> {
         flatten_gradients_into(&self.parameters, grads, out)
     }
 
@@ -148,7 +152,9 @@ mod tests {
                 && half * 2 <= standin.parameter_count() + 2 * rounding
         );
         let mut gradients = vec![0.0; standin.parameter_count()];
-        standin.gradients_into(standin.backward(), &mut gradients).unwrap();
+        standin
+            .gradients_into(standin.backward(), &mut gradients)
+            .unwrap();
         assert!(gradients.iter().any(|g| *g != 0.0));
         let before = standin.checksum();
         let grads = standin.upload(&gradients).unwrap();

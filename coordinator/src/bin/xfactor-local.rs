@@ -16,6 +16,7 @@ use coordinator::progress;
 use proto::v1::StatusRequest;
 use proto::v1::coordinator_client::CoordinatorClient;
 use settings::DeviceChoice;
+use settings::work::WireFormat;
 use telemetry::logging::LogArgs;
 
 /// Folder of the run when `--dir` is not given.
@@ -27,6 +28,11 @@ fn defaults() -> LocalJob {
 }
 
 /// Checks a `--preset` against the cluster YAML's `model.preset` names.
+/// `f32` or `bf16`, as the YAML's `workers.allreduce_wire` reads it.
+fn wire_format(name: &str) -> Result<WireFormat, serde_norway::Error> {
+    serde_norway::from_str(name)
+}
+
 fn preset_name(name: &str) -> Result<String, serde_norway::Error> {
     serde_norway::from_str::<ModelPreset>(name).map(|_| name.to_string())
 }
@@ -75,6 +81,9 @@ struct Cli {
     /// worker built with their feature, beside this binary)
     #[arg(long, value_name = "DEVICE", default_value = "cpu")]
     device: DeviceChoice,
+    /// How the ring carries gradients: f32, or bf16 (half the bytes, summed in float32)
+    #[arg(long, value_name = "WIRE", default_value = "f32", value_parser = wire_format)]
+    allreduce_wire: WireFormat,
     /// Skips the evaluation stage
     #[arg(long)]
     no_evaluate: bool,
@@ -111,6 +120,7 @@ fn main() -> anyhow::Result<()> {
     job.evaluate = !cli.no_evaluate;
     job.preset = cli.preset;
     job.device = cli.device;
+    job.allreduce_wire = cli.allreduce_wire;
     if job.checkpoint_dir().exists() {
         std::fs::remove_dir_all(job.checkpoint_dir())?;
     }

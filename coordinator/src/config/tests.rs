@@ -384,3 +384,21 @@ fn the_compute_type_is_read_defaults_to_f32_and_a_bad_one_is_named() {
         "{f16}"
     );
 }
+
+#[test]
+fn the_data_path_settings_default_to_auto_checksums_and_a_float32_wire() {
+    let config = ClusterConfig::from_yaml(GOOD, "cluster.yaml").unwrap();
+    assert_eq!(config.workers.checksum_every, ChecksumEvery::Auto);
+    assert_eq!(config.workers.allreduce_wire, WireFormat::F32);
+    let yaml = format!("{GOOD}workers:\n  checksum_every: 4\n  allreduce_wire: bf16\n");
+    let config = ClusterConfig::from_yaml(&yaml, "cluster.yaml").unwrap();
+    assert_eq!(config.workers.checksum_every, ChecksumEvery::Steps(4));
+    assert_eq!(config.workers.allreduce_wire, WireFormat::Bf16);
+    let wire = error_of(&format!("{GOOD}workers:\n  allreduce_wire: fp8\n"));
+    assert!(
+        wire.contains("workers.allreduce_wire") && wire.contains("line 26"),
+        "{wire}"
+    );
+    let zero = error_of(&format!("{GOOD}workers:\n  checksum_every: 0\n"));
+    assert!(zero.contains("checksum_every"), "{zero}");
+}

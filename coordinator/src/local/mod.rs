@@ -12,6 +12,7 @@ use data::store::DataRoot;
 use data::synthetic::SyntheticDataset;
 use settings::DeviceChoice;
 use settings::objective::ObjectiveVariant;
+use settings::work::WireFormat;
 
 use generated::{Found, GENERATED_WITH, GeneratedWith};
 
@@ -84,6 +85,8 @@ pub struct LocalJob {
     pub evaluation: LocalEvaluation,
     /// The device every worker trains on (`cpu` by default: two workers share one host).
     pub device: DeviceChoice,
+    /// How the ring carries gradients (`f32` by default; written to the YAML only when not).
+    pub allreduce_wire: WireFormat,
     /// Store settings as environment variables (`AWS_ENDPOINT`, `AWS_ALLOW_HTTP`, ...): given
     /// to the coordinator and worker processes, and used by the harness's own store access.
     pub store_env: Vec<(String, String)>,
@@ -125,6 +128,7 @@ impl LocalJob {
             stage2_views_keeping_render: None,
             evaluation: LocalEvaluation::default(),
             device: DeviceChoice::Cpu,
+            allreduce_wire: WireFormat::F32,
         }
     }
 
@@ -332,6 +336,9 @@ impl LocalJob {
             "workers:\n  expected: {}\n  minimum: {}\n  device: {}\n  threads: 1\n  heartbeat_interval_s: 0.25\n  heartbeat_timeout_s: 3\n  regroup_grace_s: 1\n  quorum_timeout_s: 120\n  stall_timeout_s: {}",
             self.workers, self.minimum, self.device, self.stall_timeout_s
         );
+        if self.allreduce_wire != WireFormat::F32 {
+            let _ = writeln!(yaml, "  allreduce_wire: {}", self.allreduce_wire.name());
+        }
         yaml
     }
 

@@ -55,12 +55,9 @@ pub struct PathBenchArgs {
     pub layout_file: Option<std::path::PathBuf>,
 }
 
-fn parse_wire(text: &str) -> Result<WireFormat, String> {
-    match text {
-        "f32" => Ok(WireFormat::F32),
-        "bf16" => Ok(WireFormat::Bf16),
-        other => Err(format!("{other}: expected f32 or bf16")),
-    }
+/// `f32` or `bf16`, as the cluster YAML names them.
+fn parse_wire(text: &str) -> Result<WireFormat, serde_json::Error> {
+    serde_json::from_value(serde_json::Value::String(text.into()))
 }
 
 /// A replica whose compute is a wait and whose parameters are a [`LayoutModel`].

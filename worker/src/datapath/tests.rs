@@ -286,17 +286,17 @@ fn train_config() -> TrainConfig {
     }
 }
 
-/// One trainer per device of `set` on the CPU, from the same seed, with the global batch
-/// cut as `generation::prepare` cuts it.
+/// One trainer per device of `set` on the CPU, from the same seed, each with an equal share
+/// of the global batch.
 fn replicas(set: &DeviceSet) -> Vec<Replica> {
     let model = XFactorConfig::tiny(16);
     let devices = Backend::Cpu.devices(set).unwrap();
-    let slices = crate::generation::replica_slices(0, GLOBAL_BATCH, 1, devices.len());
+    let share = GLOBAL_BATCH / devices.len();
     devices
         .into_iter()
-        .zip(slices)
         .enumerate()
-        .map(|(index, (device, (first, count)))| {
+        .map(|(index, device)| {
+            let (first, count) = ((index * share) as u64, share);
             let device = device.autodiff();
             let xfactor = XFactor::new(&model, 5, &device).unwrap();
             let trainer =
