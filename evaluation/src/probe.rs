@@ -142,7 +142,8 @@ pub type ProbePath = (Vec<CameraPose>, Vec<CameraPose>);
 /// What the probe achieved.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 pub struct ProbeReport {
-    /// Training samples (frame pairs of training scenes).
+    /// The probe's training samples (frame pairs of the scenes it trains on: in the
+    /// evaluation, the first of its held-out scenes, never the model's training scenes).
     pub train_samples: usize,
     /// Held-out sequences scored.
     pub test_sequences: usize,

@@ -83,9 +83,16 @@ pub async fn load_protocol_async(
         skipped_short,
     };
     for sequence in chosen {
-        let Some(frame_indices) = protocol_frames(sequence.frames.len(), protocol.length) else {
-            continue;
-        };
+        // The chosen sequences are never shorter than the protocol's length.
+        let frame_indices =
+            protocol_frames(sequence.frames.len(), protocol.length).ok_or_else(|| {
+                EvalError::Invalid(format!(
+                    "sequence {} has {} frames, fewer than the protocol's {}",
+                    sequence.id,
+                    sequence.frames.len(),
+                    protocol.length
+                ))
+            })?;
         let mut frames = Vec::with_capacity(frame_indices.len());
         for &i in &frame_indices {
             let path = &sequence.frames[i];

@@ -212,3 +212,47 @@ fn a_trained_checkpoint_is_scored_on_held_out_scenes_beside_its_baselines() {
 
     assert_report_files(&report, &out);
 }
+
+/// A checkpoint whose `model.compute` asks for bf16, evaluated on wgpu's WGSL (lavapipe here),
+/// which has no bf16: refused naming the key, before any weight is loaded (the first bf16 op
+/// would panic).
+#[test]
+fn a_checkpoint_whose_compute_the_device_lacks_is_refused_naming_the_key() {
+    use trainer_core::backend::{Backend, BackendDevices};
+    let wgpu = Backend::Wgpu.device().unwrap();
+    assert!(
+        !wgpu.supports_dtype(burn::tensor::FloatDType::BF16),
+        "this test needs a device without bf16"
+    );
+    let cpu = Device::flex().autodiff();
+    let mut model_config = XFactorConfig::tiny(SIDE);
+    model_config.compute = settings::model::Precision::Bf16;
+    let config = TrainConfig {
+        seed: 0,
+        objective: StageObjective::Stage1(Stage1Config {
+            lpips_weight: 0.0,
+            ..Stage1Config::default()
+        }),
+        global_batch: 1,
+        micro_batch: 1,
+        shards: 1,
+        schedule: Schedule::default(),
+        optimizer: AdamWConfig::default(),
+    };
+    let model = XFactor::new(&model_config, 0, &cpu).unwrap();
+    let trainer = Trainer::new(config, model_config, model, None, &cpu).unwrap();
+    let scratch = tempfile::tempdir().unwrap();
+    trainer.save_checkpoint(scratch.path()).unwrap();
+    let checkpoint = CheckpointUnderTest {
+        label: "stage1".into(),
+        weights: scratch.path().join("model.safetensors"),
+        step: None,
+        context_views: 1,
+    };
+    let out = scratch.path().join("report");
+    let error = run_evaluation(&evaluation_spec(), &[checkpoint], &out, &wgpu)
+        .unwrap_err()
+        .to_string();
+    assert!(error.contains("compute bf16"), "{error}");
+    assert!(error.contains("model.safetensors"), "{error}");
+}

@@ -162,6 +162,14 @@ pub(crate) struct TrainerState {
     pub(crate) seed: u64,
 }
 
+/// Refuses a model whose `precision` or `compute` asks for a half type `device` cannot
+/// compute in, naming the key: the trainer and the evaluation check before any kernel runs
+/// (on such a device the first half-typed op would panic).
+pub fn check_device_arithmetic(config: &XFactorConfig, device: &Device) -> Result<(), TrainError> {
+    check_precision("precision", config.precision, device)?;
+    check_precision("compute", config.compute, device)
+}
+
 /// Refuses a mixed precision or compute type (`key`) whose half type `device` cannot compute
 /// in.
 fn check_precision(
@@ -212,8 +220,7 @@ impl Trainer {
         if weight == 0.0 {
             tracing::info!("LPIPS weight is 0: training with the L1 loss alone");
         }
-        check_precision("precision", model_config.precision, device)?;
-        check_precision("compute", model_config.compute, device)?;
+        check_device_arithmetic(&model_config, device)?;
         if config.micro_batch == 0
             || config.global_batch == 0
             || !config.global_batch.is_multiple_of(config.micro_batch)

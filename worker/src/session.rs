@@ -134,6 +134,43 @@ pub enum AwaitError {
     Malformed(#[source] ConvertError),
 }
 
+/// Whose fault a failed request for work was, by its status code.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum PollFailure {
+    /// The coordinator or the connection to it: it is restarting, it failed, or the long poll
+    /// was cut (a reset connection arrives as `Unknown`, `Internal` or `Cancelled` as often as
+    /// `Unavailable`). The worker waits and asks again.
+    CoordinatorSide,
+    /// The coordinator does not know this worker (it restarted, or removed it): register again.
+    NotKnown,
+    /// The request itself was refused (a wrong token, another protocol): asking again cannot
+    /// help, so the worker ends.
+    Refused,
+}
+
+fn poll_failure(code: tonic::Code) -> PollFailure {
+    use tonic::Code;
+    match code {
+        Code::Unavailable
+        | Code::Unknown
+        | Code::Internal
+        | Code::Cancelled
+        | Code::DeadlineExceeded
+        | Code::Aborted
+        | Code::ResourceExhausted
+        | Code::DataLoss => PollFailure::CoordinatorSide,
+        Code::NotFound => PollFailure::NotKnown,
+        Code::Ok
+        | Code::InvalidArgument
+        | Code::AlreadyExists
+        | Code::PermissionDenied
+        | Code::FailedPrecondition
+        | Code::OutOfRange
+        | Code::Unimplemented
+        | Code::Unauthenticated => PollFailure::Refused,
+    }
+}
+
 /// Blocks until the coordinator has work for this worker after generation `after`, retrying
 /// while the coordinator is unavailable (it may be restarting). `failure` tells it why this
 /// worker's part of `after` failed.
@@ -150,18 +187,23 @@ pub async fn await_assignment(
             session: progress.session(),
             failure: failure.map(Into::into),
         };
-        match client.await_assignment(request).await {
+        let status = match client.await_assignment(request).await {
             Ok(reply) => {
                 return Assignment::try_from(&reply.into_inner()).map_err(AwaitError::Malformed);
             }
-            Err(status) if status.code() == tonic::Code::Unavailable => {
-                tracing::warn!("coordinator unavailable; retrying");
+            Err(status) => status,
+        };
+        match poll_failure(status.code()) {
+            PollFailure::CoordinatorSide => {
+                tracing::warn!(code = ?status.code(), message = status.message(), "the request for work failed on the coordinator's side or the connection; retrying");
                 tokio::time::sleep(Duration::from_millis(500)).await;
             }
-            Err(status) if status.code() == tonic::Code::NotFound => {
+            PollFailure::NotKnown => {
                 return Err(AwaitError::Unknown(status.message().to_string()));
             }
-            Err(status) => return Err(AwaitError::Refused(status.message().to_string())),
+            PollFailure::Refused => {
+                return Err(AwaitError::Refused(status.message().to_string()));
+            }
         }
     }
 }
@@ -199,6 +241,32 @@ pub async fn heartbeats(mut client: Client, progress: Arc<Progress>, interval: D
                 progress.metrics.add(&metrics::HEARTBEAT_FAILURES, &[], 1.0);
                 tracing::warn!(error = %status.message(), "heartbeat failed");
             }
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::{PollFailure, poll_failure};
+    use tonic::Code;
+
+    #[test]
+    fn a_cut_long_poll_is_waited_out_and_only_the_workers_own_refusals_end_it() {
+        for code in [
+            Code::Unavailable,
+            Code::Unknown,
+            Code::Internal,
+            Code::Cancelled,
+        ] {
+            assert_eq!(poll_failure(code), PollFailure::CoordinatorSide, "{code:?}");
+        }
+        assert_eq!(poll_failure(Code::NotFound), PollFailure::NotKnown);
+        for code in [
+            Code::Unauthenticated,
+            Code::InvalidArgument,
+            Code::FailedPrecondition,
+        ] {
+            assert_eq!(poll_failure(code), PollFailure::Refused, "{code:?}");
         }
     }
 }

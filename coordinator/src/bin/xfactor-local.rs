@@ -11,7 +11,7 @@ use std::time::{Duration, Instant};
 use anyhow::{Context, bail};
 use clap::Parser;
 use coordinator::config::ModelPreset;
-use coordinator::local::{LocalJob, free_port};
+use coordinator::local::{LocalJob, figures, free_port};
 use coordinator::progress;
 use proto::v1::StatusRequest;
 use proto::v1::coordinator_client::CoordinatorClient;
@@ -347,17 +347,9 @@ fn evaluation_figures(location: &Path) -> anyhow::Result<String> {
     Ok(figures.join(" "))
 }
 
-/// `SE3_Auc@30` of a camera-metrics object and its spread.
+/// `SE3_Auc@30` of a camera-metrics object and its spread (NaN where the report lacks them).
 fn auc30(metrics: &serde_json::Value) -> (f64, f64) {
-    let value = metrics["thresholds"]
-        .as_array()
-        .and_then(|t| t.iter().find(|s| s["threshold"] == 30))
-        .and_then(|s| s["auc"].as_f64())
-        .unwrap_or(f64::NAN);
-    (
-        value,
-        metrics["spread"]["auc30"].as_f64().unwrap_or(f64::NAN),
-    )
+    figures::auc30(metrics).unwrap_or((f64::NAN, f64::NAN))
 }
 
 /// One scored checkpoint's figures, every key prefixed with its label (`stage1_...`).

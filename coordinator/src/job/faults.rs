@@ -34,6 +34,12 @@ impl StoreRetry {
         backoff
     }
 
+    /// The store answered again (a group formed after its failure is training): the outage
+    /// is over, though the back-off stays until a commit proves uploads work too.
+    pub(super) fn answered(&mut self) {
+        self.since = None;
+    }
+
     /// How long the store has been failing at `now`, while it is.
     pub(super) fn failing_for(&self, now: Instant) -> Option<Duration> {
         self.since.map(|since| now.saturating_duration_since(since))

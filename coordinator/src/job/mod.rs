@@ -340,6 +340,8 @@ impl JobState {
             return false;
         };
         let world_size = group.members.len();
+        // A step of the running group means its data and its start were read from the store.
+        self.store_retry.answered();
         if let Some(member) = self.members.get_mut(&worker) {
             member.state.finished(phase, report.step);
             member.samples_per_s = report.samples_per_s;

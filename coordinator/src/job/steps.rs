@@ -79,6 +79,11 @@ impl ThinnedCurve {
     }
 }
 
+/// The index key of a record.
+fn key(record: &StepRecord) -> (Phase, u64, u64) {
+    (record.phase, record.step, record.generation)
+}
+
 /// Step records by `(phase, step, generation)`, the newest in memory, the rest in the store.
 #[derive(Debug, Default)]
 pub struct StepLog {
@@ -139,19 +144,29 @@ impl StepLog {
     /// Takes back `records` read from the store's history (a restarted coordinator's
     /// predecessor's steps, oldest first) as if this log had sealed them: they join the curves
     /// and the report's retained records, and are not handed to the history writer again.
-    /// Call before any step is reported.
+    /// Steps reported to this coordinator before the history was read back stay unsealed
+    /// after them (they go to the history writer as any other), and win over a restored
+    /// record of the same step and generation.
     pub fn restore(&mut self, records: Vec<StepRecord>) {
-        for record in records {
-            let key = (record.phase, record.step, record.generation);
-            match self.index.get(&key) {
+        let pending: Vec<StepRecord> = self.records.drain(self.sealed..).collect();
+        for record in &pending {
+            self.index.remove(&key(record));
+        }
+        let reported: std::collections::HashSet<_> = pending.iter().map(key).collect();
+        for record in records.into_iter().filter(|r| !reported.contains(&key(r))) {
+            match self.index.get(&key(&record)) {
                 Some(&position) => self.records[position] = record,
                 None => {
-                    self.index.insert(key, self.records.len());
+                    self.index.insert(key(&record), self.records.len());
                     self.records.push(record);
                 }
             }
         }
         self.take_sealed(true);
+        for record in pending {
+            self.index.insert(key(&record), self.records.len());
+            self.records.push(record);
+        }
     }
 
     /// Drops the oldest `count` records from memory.
@@ -214,6 +229,35 @@ mod tests {
         assert_eq!(curve[&(steps - 1)].loss, (steps - 1) as f32);
         let last = log.retained().last().unwrap();
         assert_eq!((last.step, last.checksums.len()), (steps - 1, 1));
+    }
+
+    #[test]
+    fn steps_reported_before_the_history_is_read_back_are_still_written() {
+        let mut log = StepLog::default();
+        log.record(Phase::Stage1, 5, 2).loss = 0.5;
+        log.record(Phase::Stage1, 6, 2).loss = 0.6;
+        let earlier: Vec<StepRecord> = (0..5)
+            .map(|step| {
+                let mut record = StepRecord::new(Phase::Stage1, step, 1);
+                record.loss = step as f32;
+                record
+            })
+            .collect();
+        log.restore(earlier);
+        let written: Vec<u64> = log.take_sealed(true).iter().map(|r| r.step).collect();
+        assert_eq!(
+            written,
+            [5, 6],
+            "the window's steps go to the history writer"
+        );
+        let curve = log.curve(Phase::Stage1);
+        assert_eq!(
+            curve.keys().copied().collect::<Vec<_>>(),
+            [0, 1, 2, 3, 4, 5, 6]
+        );
+        assert_eq!(curve[&5].loss, 0.5);
+        assert_eq!(log.retained().len(), 7);
+        assert_eq!(log.index.len(), log.records.len());
     }
 
     /// A row whose loss is the step number.

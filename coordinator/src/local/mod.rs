@@ -16,6 +16,7 @@ use settings::work::WireFormat;
 
 use generated::{Found, GENERATED_WITH, GeneratedWith};
 
+pub mod figures;
 mod generated;
 
 /// Size of a local job.

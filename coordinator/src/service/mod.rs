@@ -311,8 +311,10 @@ impl CoordinatorService {
         token: &str,
         shutdown: impl std::future::Future<Output = ()> + Send + 'static,
     ) -> Result<Report, ServeError> {
-        let server = self.start_server(token).await?;
+        // The history first: a restarted coordinator's workers re-register within a fraction
+        // of a second and report steps, which must land after the steps read back.
         let recorders = self.open_recorders().await?;
+        let server = self.start_server(token).await?;
         let fenced = tokio::select! {
             lost = self.tick_until_done(&server.health, &recorders) => lost,
             () = shutdown => {

@@ -165,7 +165,8 @@ fn save_tps_paths(
     Ok(())
 }
 
-/// The pose probe trained on the generated training scenes, with its held-out path figure.
+/// The pose probe trained on the first of the evaluation's held-out scenes (none of which the
+/// model trained on) and scored on the rest, with its path figure.
 pub(super) fn evaluate_probe(
     model: &XFactor,
     context: &Context<'_>,

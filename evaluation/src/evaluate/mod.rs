@@ -203,6 +203,10 @@ fn evaluate_checkpoint(
     figures: &mut Vec<String>,
 ) -> Result<(StageReport, XFactorConfig), EvalError> {
     let _span = tracing::info_span!("checkpoint", label = %under_test.label).entered();
+    // Before the weights are loaded: on a device without the half type, loading would panic.
+    let stored = checkpoint::read_config(&under_test.weights)?;
+    trainer_core::trainer::check_device_arithmetic(&stored, &context.device)
+        .map_err(|e| EvalError::Invalid(format!("{}: {e}", under_test.weights.display())))?;
     let (model, config) = checkpoint::load(&under_test.weights, &context.device)?;
     let views = under_test.context_views.max(1);
     let label = &under_test.label;

@@ -7,7 +7,7 @@
 use data::scenes::CameraPose;
 use serde::{Deserialize, Serialize};
 
-use super::spread::{CameraSpread, camera_spread};
+use super::spread::bootstrap_spread;
 
 use super::auc::{auc, normalized_histogram};
 use super::trajectory::TrajectoryError;
@@ -100,7 +100,7 @@ pub struct CameraMetrics {
     #[serde(default)]
     pub trajectory_error_unscaled: Option<f64>,
     /// Bootstrap spreads of the AUCs over the independent units the errors came from, when
-    /// those were given ([`CameraMetrics::with_spread`]).
+    /// those were given ([`CameraMetrics::from_groups`]).
     #[serde(default)]
     pub spread: Option<CameraSpread>,
 }
@@ -200,6 +200,32 @@ impl CameraMetrics {
     /// The scores at `threshold` degrees, if it is one of [`THRESHOLDS`].
     pub fn at(&self, threshold: u32) -> Option<&ThresholdScores> {
         self.thresholds.iter().find(|s| s.threshold == threshold)
+    }
+}
+
+/// Spreads of the headline camera figures.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Serialize, Deserialize)]
+pub struct CameraSpread {
+    /// Spread of `SE3_Auc@20`.
+    pub auc20: f64,
+    /// Spread of `SE3_Auc@30`.
+    pub auc30: f64,
+}
+
+/// The spreads of `SE3_Auc@20` and `@30` over `groups`, each group the pair errors of one
+/// independent unit (a transfer, a held-out sequence).
+pub fn camera_spread(groups: &[Vec<PairError>], seed: u64) -> CameraSpread {
+    let auc = |threshold: u32| {
+        bootstrap_spread(groups, seed, move |sample| {
+            let errors: Vec<PairError> = sample.iter().flat_map(|g| g.iter().copied()).collect();
+            CameraMetrics::from_errors(&errors)
+                .at(threshold)
+                .map_or(0.0, |s| s.auc)
+        })
+    };
+    CameraSpread {
+        auc20: auc(20),
+        auc30: auc(30),
     }
 }
 
@@ -307,5 +333,24 @@ mod tests {
         assert!((at5.rotation_auc - (0.25 + 0.5 + 0.5 + 0.5 + 0.75) / 5.0).abs() < 1e-12);
         assert!((metrics.mean_rotation_error - 17.5 / 4.0).abs() < 1e-12);
         assert_eq!(CameraMetrics::from_errors(&[]).pairs, 0);
+    }
+
+    #[test]
+    fn camera_spread_is_zero_for_agreeing_units_and_not_for_mixed_ones() {
+        let exact = PairError {
+            rotation: 0.0,
+            translation: 0.0,
+        };
+        let wrong = PairError {
+            rotation: 180.0,
+            translation: 90.0,
+        };
+        let same = vec![vec![exact; 4]; 6];
+        assert_eq!(camera_spread(&same, 0), CameraSpread::default());
+        let mixed: Vec<Vec<PairError>> = (0..6)
+            .map(|i| vec![if i % 2 == 0 { exact } else { wrong }; 4])
+            .collect();
+        let spread = camera_spread(&mixed, 0);
+        assert!(spread.auc30 > 0.05 && spread.auc30 < 0.4, "{spread:?}");
     }
 }

@@ -9,6 +9,7 @@ mod trajectory;
 pub use camera::{
     CameraMetrics, PairError, THRESHOLDS, ThresholdScores, pair_error, trajectory_errors,
 };
+pub use camera::{CameraSpread, camera_spread};
 pub use image::{ImageMetricError, ReconstructionReport, psnr, ssim};
-pub use spread::{CameraSpread, bootstrap_spread, camera_spread};
+pub use spread::bootstrap_spread;
 pub use trajectory::{TrajectoryError, trajectory_error};

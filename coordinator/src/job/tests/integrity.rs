@@ -158,11 +158,18 @@ fn a_store_outage_shows_in_the_status_for_as_long_as_it_lasts_and_blames_no_one(
     let waiting = run.state.status(run.now);
     assert_eq!(waiting.store_failing, Some(Duration::from_secs(90)));
     let generation = run.assign(generation)[0].as_ref().unwrap().generation;
-    assert!(!run.commit(w0, Phase::Stage1, 2, generation));
+    assert_eq!(
+        run.state.status(run.now).store_failing,
+        Some(Duration::from_secs(90)),
+        "a group formed is not yet an answer from the store"
+    );
+    report_checksums(&mut run, generation, |_| 1);
     assert_eq!(
         run.state.status(run.now).store_failing,
         None,
-        "a commit ends the outage"
+        "a step trained ends the outage"
     );
+    assert!(!run.commit(w0, Phase::Stage1, 2, generation));
+    assert_eq!(run.state.status(run.now).store_failing, None);
     assert!(run.state.report().exclusions.is_empty());
 }
