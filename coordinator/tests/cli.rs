@@ -140,6 +140,7 @@ fn help_lists_every_flag_with_its_default() {
             ("--micro-batch", Some(&micro_batch)),
             ("--checkpoint-every", Some(&checkpoint_every)),
             ("--device", Some("cpu")),
+            ("--allreduce-wire", Some("f32")),
             ("--no-evaluate", None),
             ("--prepare-only", None),
             ("--port", None),
