@@ -176,24 +176,18 @@ fn malformed_train_assignments_are_refused_with_the_field() {
             other => panic!("{field}: {other:?}"),
         }
     }
-    let mut device = whole.clone();
-    device.device = 99;
-    assert_eq!(
-        TrainWork::try_from(&device),
-        Err(ConvertError::Unknown {
-            field: "train.device",
-            value: 99
-        })
-    );
-    let mut format = whole.clone();
-    format.wire = 7;
-    assert_eq!(
-        TrainWork::try_from(&format),
-        Err(ConvertError::Unknown {
-            field: "train.wire",
-            value: 7
-        })
-    );
+    let unknown: [Breakage<v1::TrainAssignment>; 2] = [
+        (|w| w.device = 99, "train.device"),
+        (|w| w.wire = 99, "train.wire"),
+    ];
+    for (break_it, field) in unknown {
+        let mut broken = whole.clone();
+        break_it(&mut broken);
+        assert_eq!(
+            TrainWork::try_from(&broken),
+            Err(ConvertError::Unknown { field, value: 99 })
+        );
+    }
 }
 
 fn checkpoint(stage: Phase, weights: &str, context_views: usize) -> CheckpointToEvaluate {

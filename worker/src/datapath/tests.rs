@@ -14,7 +14,7 @@ use trainer_core::flat::{flatten_parameters, parameter_checksum};
 use trainer_core::trainer::Trainer;
 
 use super::*;
-use crate::collective::{CollectiveService, Link, RingKeys};
+use crate::collective::{CollectiveService, Link, RingKeys, WireFormat};
 
 /// A ring of one on a fresh runtime: the data path without peers.
 fn lone_ring(runtime: &Runtime) -> Ring {
@@ -311,10 +311,9 @@ fn replicas(set: &DeviceSet) -> Vec<Replica> {
         .collect()
 }
 
-/// Parameters of every replica after `steps` steps, through a ring of one.
-fn train(set: &DeviceSet, steps: usize) -> (Vec<Vec<f32>>, Vec<u32>) {
-    let runtime = Runtime::new().unwrap();
-    let spec = DataSpec {
+/// The generated data every test of real training reads.
+fn spec() -> DataSpec {
+    DataSpec {
         source: DataSource::Generated {
             scenes: 2,
             trajectories: 2,
@@ -324,8 +323,13 @@ fn train(set: &DeviceSet, steps: usize) -> (Vec<Vec<f32>>, Vec<u32>) {
         image_size: 16,
         seed: 5,
         global_batch: GLOBAL_BATCH,
-    };
-    let source = runtime.block_on(RankSource::open(&spec, 1, 0)).unwrap();
+    }
+}
+
+/// Parameters of every replica after `steps` steps, through a ring of one.
+fn train(set: &DeviceSet, steps: usize) -> (Vec<Vec<f32>>, Vec<u32>) {
+    let runtime = Runtime::new().unwrap();
+    let source = runtime.block_on(RankSource::open(&spec(), 1, 0)).unwrap();
     let mut path = DataPath::new(lone_ring(&runtime), every_step(), None);
     let mut replicas = replicas(set);
     for _ in 0..steps {
@@ -370,5 +374,100 @@ fn two_replicas_train_to_the_weights_of_one_with_the_same_global_batch() {
             .unwrap()
         ),
         "training moved the weights"
+    );
+}
+
+/// Two ranks of one replica each, in this process over loopback, train `steps` steps with
+/// gradients carried as `wire`; each step's loss and both ranks' checksums.
+fn train_two_ranks(wire: WireFormat, steps: usize) -> Vec<(f32, Option<u32>, Option<u32>)> {
+    let runtime = Runtime::new().unwrap();
+    let link = Link {
+        token: "token".into(),
+        timeout: Duration::from_secs(20),
+        tls: None,
+    };
+    let servers: Vec<(String, std::sync::Arc<crate::collective::Mailbox>)> = (0..2)
+        .map(|_| {
+            runtime.block_on(async {
+                let service = CollectiveService::default();
+                let mailbox = service.mailbox();
+                let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+                let address = listener.local_addr().unwrap().to_string();
+                crate::collective::spawn_server(listener, service, &link).unwrap();
+                (address, mailbox)
+            })
+        })
+        .collect();
+    let peers: Vec<String> = servers.iter().map(|(address, _)| address.clone()).collect();
+    let ranks: Vec<Vec<(f32, Option<u32>)>> = std::thread::scope(|scope| {
+        let handles: Vec<_> = servers
+            .iter()
+            .enumerate()
+            .map(|(rank, (_, mailbox))| {
+                let (runtime, link, peers) = (&runtime, &link, &peers);
+                scope.spawn(move || {
+                    let keys = RingKeys {
+                        own: format!("rank-{rank}"),
+                        left: format!("rank-{}", 1 - rank),
+                    };
+                    let cancel = tokio_util::sync::CancellationToken::new();
+                    let ring = runtime
+                        .block_on(Ring::connect(mailbox, rank, peers, 1, &keys, link, cancel))
+                        .unwrap()
+                        .with_wire(wire);
+                    let source = runtime
+                        .block_on(RankSource::open(&spec(), 2, rank))
+                        .unwrap();
+                    let (first, count) = data::spec::rank_slice(GLOBAL_BATCH, 2, rank);
+                    let mut replica = replicas(&DeviceSet::Count(1)).remove(0);
+                    (replica.first, replica.count) = (first, count);
+                    let mut path = DataPath::new(ring, every_step(), None);
+                    let mut replicas = [replica];
+                    (0..steps)
+                        .map(|_| {
+                            let figures = path
+                                .step(runtime, &mut replicas, &source, &Progress::new())
+                                .unwrap();
+                            (figures.metrics.loss, figures.checksum)
+                        })
+                        .collect()
+                })
+            })
+            .collect();
+        handles.into_iter().map(|h| h.join().unwrap()).collect()
+    });
+    ranks[0]
+        .iter()
+        .zip(&ranks[1])
+        .map(|(a, b)| (a.0, a.1, b.1))
+        .collect()
+}
+
+#[test]
+fn a_bf16_wire_trains_within_a_percent_of_float32_with_ranks_bitwise_equal() {
+    let steps = 8;
+    let exact = train_two_ranks(WireFormat::F32, steps);
+    let halved = train_two_ranks(WireFormat::Bf16, steps);
+    for (step, ((loss, a, b), (half_loss, half_a, half_b))) in exact.iter().zip(&halved).enumerate()
+    {
+        let relative = ((half_loss - loss) / loss).abs();
+        println!(
+            "step={step} loss_f32={loss:.6} loss_bf16_wire={half_loss:.6} relative={relative:.2e}"
+        );
+        assert!(relative <= 0.01, "step {step}: {half_loss} against {loss}");
+        assert!(a.is_some() && a == b, "float32 ranks agree at step {step}");
+        assert!(
+            half_a.is_some() && half_a == half_b,
+            "bf16-wire ranks agree at step {step}"
+        );
+    }
+    assert_eq!(
+        exact[0].0, halved[0].0,
+        "the first step's loss is computed before any exchange"
+    );
+    assert_ne!(
+        exact[steps - 1].1,
+        halved[steps - 1].1,
+        "the bf16 wire rounded something"
     );
 }
