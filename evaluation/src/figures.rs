@@ -8,9 +8,13 @@ use data::scenes::CameraPose;
 use image::codecs::gif::{GifEncoder, Repeat};
 use image::{Delay, Frame, Rgb, RgbImage, RgbaImage};
 use telemetry::plot::{Chart, Figure, Panel, Series};
+use telemetry::tiles::{Tile, TileRow, TileSheet};
 
 /// Gap between tiles of grids and strips, in pixels.
 const GAP: u32 = 2;
+/// The least side of a frame in a labelled sheet, in pixels: 32-pixel frames drawn 1:1 are
+/// too small to read.
+const SHEET_SIDE: u32 = 96;
 /// Side of camera-path plots, in pixels.
 const PLOT_SIDE: u32 = 520;
 
@@ -78,6 +82,41 @@ pub fn grid(rows: &[Vec<Image>]) -> RgbImage {
 /// Writes a grid (see [`grid`]) as PNG.
 pub fn save_grid(rows: &[Vec<Image>], path: &Path) -> Result<(), FigureError> {
     grid(rows).save(path).map_err(|e| figure_error(path, e))
+}
+
+/// Writes rows of frames as a PNG sheet a reader can use at a glance: every frame scaled up
+/// (nearest neighbour) to at least 96 pixels, each row named on the left (`rows`' labels),
+/// each column on top (`columns`), under `title`.
+pub fn save_sheet(
+    title: &str,
+    columns: &[String],
+    rows: &[(String, Vec<Image>)],
+    path: &Path,
+) -> Result<(), FigureError> {
+    let sheet = TileSheet {
+        title: title.into(),
+        columns: columns.to_vec(),
+        rows: rows
+            .iter()
+            .map(|(label, images)| TileRow {
+                label: label.clone(),
+                tiles: images
+                    .iter()
+                    .map(|image| {
+                        let rgb = to_rgb(image);
+                        Tile {
+                            width: rgb.width(),
+                            height: rgb.height(),
+                            rgb: rgb.into_raw(),
+                        }
+                    })
+                    .collect(),
+            })
+            .collect(),
+        min_side: SHEET_SIDE,
+    };
+    let png = sheet.to_png().map_err(|e| figure_error(path, e))?;
+    std::fs::write(path, png).map_err(|e| figure_error(path, e))
 }
 
 /// Writes `frames` as a looping animated GIF, `delay_ms` per frame.

@@ -203,13 +203,14 @@ pub struct TpsSettings {
     pub seed: u64,
 }
 
-/// Runs TPS: `render(source, contexts)` must return one render per source frame.
+/// Runs TPS: `render(frames)` must return one render of `frames.contexts` along each of
+/// `frames.source`'s frames (it also sees the ideal transfer, for figures).
 pub fn transferability(
     dataset: &SyntheticDataset,
     pairs: &[TpsPair],
     settings: TpsSettings,
     oracle: &dyn PoseOracle,
-    mut render: impl FnMut(&[Image], &[Image]) -> Result<Vec<Image>, EvalError>,
+    mut render: impl FnMut(&PairFrames) -> Result<Vec<Image>, EvalError>,
 ) -> Result<TpsReport, EvalError> {
     let frames = dataset.sequences.first().map_or(0, |s| s.frames.len());
     let indices = target_frames(frames, settings.frames_per_pair);
@@ -242,7 +243,7 @@ pub fn transferability(
                 }
             }
         };
-        let renders = render(&frames.source, &frames.contexts)?;
+        let renders = render(&frames)?;
         let copies = copies_of_source(&renders, &frames);
         (copied_renders, renders_seen) = (copied_renders + copies, renders_seen + renders.len());
         if 2 * copies > renders.len() {
@@ -315,7 +316,8 @@ mod tests {
             context_views: 1,
             seed: 0,
         };
-        let report = transferability(&dataset, &pairs, settings, &oracle, |source, contexts| {
+        let report = transferability(&dataset, &pairs, settings, &oracle, |frames| {
+            let (source, contexts) = (&frames.source, &frames.contexts);
             let pose_source = oracle.estimate(source)?;
             Ok(dataset
                 .sequences
@@ -353,9 +355,9 @@ mod tests {
             context_views: 2,
             seed: 0,
         };
-        let report = transferability(&dataset, &pairs, settings, &oracle, |source, contexts| {
-            assert_eq!(contexts.len(), 2);
-            Ok(source.to_vec())
+        let report = transferability(&dataset, &pairs, settings, &oracle, |frames| {
+            assert_eq!(frames.contexts.len(), 2);
+            Ok(frames.source.to_vec())
         })
         .unwrap();
         assert_eq!(report.copied_transfers, 6);

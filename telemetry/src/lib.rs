@@ -16,6 +16,7 @@ pub mod logging;
 mod metrics;
 pub mod plot;
 pub mod tensorboard;
+pub mod tiles;
 pub mod training;
 
 pub use metrics::{Kind, Metric, Registry};

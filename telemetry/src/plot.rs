@@ -211,6 +211,10 @@ impl Chart for Figure {
 /// notation, others to three decimals without trailing zeros.
 pub(crate) fn tick(value: f64) -> String {
     let magnitude = value.abs();
+    // A tick at zero computed in floating point (-5.6e-17) reads as zero.
+    if magnitude < 1e-12 {
+        return "0".into();
+    }
     if value == value.round() && magnitude < 1e6 {
         format!("{value:.0}")
     } else if !(1e-2..1e6).contains(&magnitude) {
@@ -220,6 +224,9 @@ pub(crate) fn tick(value: f64) -> String {
         text.trim_end_matches('0').trim_end_matches('.').to_string()
     }
 }
+
+/// Share of an equal-aspect panel's height kept free of points for the legend.
+const LEGEND_ROOM: f64 = 0.25;
 
 /// Lowest and highest finite value of `values`, widened when they are equal.
 fn bounds(values: impl Iterator<Item = f64>) -> Option<(f64, f64)> {
@@ -269,9 +276,16 @@ impl Panel {
         let (x_low, x_high) = bounds(all().map(|p| p.0)).unwrap_or((0.0, 1.0));
         let (y_low, y_high) = bounds(all().map(|p| p.1)).unwrap_or((0.0, 1.0));
         let (x, y) = if self.equal_aspect {
+            // Equal units on both axes, the points in the lower part and the top
+            // [`LEGEND_ROOM`] left to the legend, which must never cover a point (a camera
+            // path's last pose once hid a whole series under it).
             let half = (x_high - x_low).max(y_high - y_low) * 0.55;
+            let side = 2.0 * half / (1.0 - LEGEND_ROOM);
             let (x_mid, y_mid) = ((x_low + x_high) / 2.0, (y_low + y_high) / 2.0);
-            (x_mid - half..x_mid + half, y_mid - half..y_mid + half)
+            (
+                x_mid - side / 2.0..x_mid + side / 2.0,
+                y_mid - half..y_mid - half + side,
+            )
         } else {
             let pad = (y_high - y_low) * 0.05;
             (x_low..x_high, y_low - pad..y_high + pad)
@@ -437,11 +451,11 @@ mod tests {
 
     #[test]
     fn ticks_read_like_numbers_people_write() {
-        let ticks: Vec<String> = [5.0, 0.25, 0.1 + 0.2, 1e-4, 2.5e7, -3.0]
+        let ticks: Vec<String> = [5.0, 0.25, 0.1 + 0.2, 1e-4, 2.5e7, -3.0, -5.6e-17]
             .iter()
             .map(|v| tick(*v))
             .collect();
-        assert_eq!(ticks, ["5", "0.25", "0.3", "1.0e-4", "2.5e7", "-3"]);
+        assert_eq!(ticks, ["5", "0.25", "0.3", "1.0e-4", "2.5e7", "-3", "0"]);
     }
 
     #[test]

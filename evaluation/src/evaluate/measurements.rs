@@ -2,12 +2,13 @@
 
 use std::path::Path;
 
+use data::Image;
 use trainer_core::XFactor;
 
 use super::reconstruction::{Renderer, reconstruct, reconstruction_set};
 use super::{Baselines, Context, GRID_PAIRS};
 use crate::error::EvalError;
-use crate::figures::{save_camera_paths, save_grid};
+use crate::figures::{save_camera_paths, save_sheet};
 use crate::inference::{probe_features, render_along};
 use crate::metrics::ReconstructionReport;
 use crate::probe::{ProbeReport, ProbeSequence, no_motion, run_probe};
@@ -51,8 +52,11 @@ pub(super) fn generated_reconstruction(
             .map(|s| s.frames.as_slice());
         reconstruct(Renderer::Model(model), generated, context_views, context)?
     };
+    let sheet = sequence_rows(&grid);
+    let columns = frame_columns(&sheet);
     figures.save(format!("{prefix}_reconstruction.png"), &|p| {
-        Ok(save_grid(&grid, p)?)
+        let title = format!("{prefix}: held-out sequences and their renders ({context_views} context view(s) in place)");
+        Ok(save_sheet(&title, &columns, &sheet, p)?)
     })?;
     Ok(reconstruction)
 }
@@ -71,9 +75,17 @@ pub(super) fn sequence_reconstructions(
             tracing::info_span!("sequences", model = prefix, dataset = ?protocol.kind).entered();
         let frames = set.sequences.iter().map(|s| s.frames.as_slice());
         let (reconstruction, grid) = reconstruct(Renderer::Model(model), frames, 1, context)?;
+        let sheet = sequence_rows(&grid);
+        let columns = frame_columns(&sheet);
         figures.save(
             format!("{prefix}_sequences_{}.png", protocol.kind.name()),
-            &|p| Ok(save_grid(&grid, p)?),
+            &|p| {
+                let title = format!(
+                    "{prefix}: {} test sequences and their renders",
+                    protocol.kind.name()
+                );
+                Ok(save_sheet(&title, &columns, &sheet, p)?)
+            },
         )?;
         sequences.push(SequenceReport {
             kind: protocol.kind,
@@ -85,6 +97,23 @@ pub(super) fn sequence_reconstructions(
         });
     }
     Ok(sequences)
+}
+
+/// A reconstruction grid's rows (a sequence's frames, then its renders) named for a sheet.
+fn sequence_rows(grid: &[Vec<Image>]) -> Vec<(String, Vec<Image>)> {
+    grid.iter()
+        .enumerate()
+        .map(|(index, row)| {
+            let what = if index % 2 == 0 { "frames" } else { "renders" };
+            (format!("sequence {}: {what}", index / 2 + 1), row.clone())
+        })
+        .collect()
+}
+
+/// `frame 1`, `frame 2`, ... for the longest row of `rows`.
+fn frame_columns(rows: &[(String, Vec<Image>)]) -> Vec<String> {
+    let longest = rows.iter().map(|(_, row)| row.len()).max().unwrap_or(0);
+    (1..=longest).map(|i| format!("frame {i}")).collect()
 }
 
 /// How TPS is drawn for `context_views` context views.
@@ -106,7 +135,7 @@ pub(super) fn evaluate_tps(
 ) -> Result<TpsReport, EvalError> {
     let spec = context.spec;
     let pairs = draw_pairs(spec.seed, spec.scenes, spec.trajectories, spec.tps_pairs)?;
-    let mut grid_rows = Vec::new();
+    let mut sheet = Vec::new();
     let tps = {
         let _span =
             tracing::info_span!("tps", model = prefix, oracle = context.oracle.name()).entered();
@@ -115,18 +144,27 @@ pub(super) fn evaluate_tps(
             &pairs,
             tps_settings(context_views, context),
             context.oracle.as_ref(),
-            |source, scene| {
-                let renders = render_along(model, source, 0, scene, &context.device)?;
-                if grid_rows.len() < 2 * GRID_PAIRS {
-                    grid_rows.push(source.to_vec());
-                    grid_rows.push(renders.clone());
+            |frames| {
+                let renders =
+                    render_along(model, &frames.source, 0, &frames.contexts, &context.device)?;
+                let pair = sheet.len() / 4 + 1;
+                if pair <= GRID_PAIRS {
+                    let row = |what: &str, images: &[Image]| {
+                        (format!("pair {pair}: {what}"), images.to_vec())
+                    };
+                    sheet.push(row("source video", &frames.source));
+                    sheet.push(row("target scene's context", &frames.contexts));
+                    sheet.push(row("our render", &renders));
+                    sheet.push(row("truth along source path", &frames.ideal));
                 }
                 Ok(renders)
             },
         )?
     };
+    let columns = frame_columns(&sheet);
     figures.save(format!("{prefix}_tps_renders.png"), &|p| {
-        Ok(save_grid(&grid_rows, p)?)
+        let title = format!("{prefix}: the source video's camera path rendered in another scene");
+        Ok(save_sheet(&title, &columns, &sheet, p)?)
     })?;
     if let Some(pair) = pairs.first() {
         save_tps_paths(model, context_views, context, prefix, pair, figures)?;
@@ -134,7 +172,8 @@ pub(super) fn evaluate_tps(
     Ok(tps)
 }
 
-/// The oracle's camera paths of `pair`'s source video and of its transfer, when it reads both.
+/// The oracle's camera paths of `pair`'s source video and of its transfer; where the oracle
+/// cannot read the renders, the source's path alone, the title saying why.
 fn save_tps_paths(
     model: &XFactor,
     context_views: usize,
@@ -148,21 +187,25 @@ fn save_tps_paths(
     let frames = crate::tps::pair_frames(&context.dataset, pair, &indices, context_views)?;
     let renders = render_along(model, &frames.source, 0, &frames.contexts, &context.device)?;
     let oracle = context.oracle.as_ref();
-    if let (Ok(reference), Ok(rendered)) =
-        (oracle.estimate(&frames.source), oracle.estimate(&renders))
-    {
-        figures.save(format!("{prefix}_tps_paths.png"), &|p| {
-            Ok(save_camera_paths(
-                &format!("{prefix}: transferred camera path"),
-                &[
-                    ("source video (oracle poses)", &reference[..]),
-                    ("renders (oracle poses)", &rendered[..]),
-                ],
-                p,
-            )?)
-        })?;
-    }
-    Ok(())
+    let Ok(reference) = oracle.estimate(&frames.source) else {
+        return Ok(());
+    };
+    let (title, rendered) = match oracle.estimate(&renders) {
+        Ok(rendered) => (format!("{prefix}: transferred camera path"), rendered),
+        Err(error) => (
+            format!(
+                "{prefix}: transferred camera path (the oracle could not read the renders: {error})"
+            ),
+            Vec::new(),
+        ),
+    };
+    figures.save(format!("{prefix}_tps_paths.png"), &|p| {
+        let mut paths = vec![("source video (oracle poses)", &reference[..])];
+        if !rendered.is_empty() {
+            paths.push(("renders (oracle poses)", &rendered[..]));
+        }
+        Ok(save_camera_paths(&title, &paths, p)?)
+    })
 }
 
 /// The pose probe trained on the first of the evaluation's held-out scenes (none of which the
@@ -263,7 +306,7 @@ pub(super) fn baselines(
         &pairs,
         tps_settings(context_views, context),
         context.oracle.as_ref(),
-        |source, scene| Ok(vec![scene[0].clone(); source.len()]),
+        |frames| Ok(vec![frames.contexts[0].clone(); frames.source.len()]),
     )?;
     let first_test_scene = first_probe_test_scene(context);
     let held_out: Vec<_> = context
