@@ -54,6 +54,23 @@ fn summary(name: &str, report: &evaluation::evaluate::ModelReport) {
     );
 }
 
+/// Stage 1 without LPIPS, `batch` samples a step in one micro-batch of `shards` shards,
+/// with the default schedule.
+fn stage1_without_lpips(batch: usize, shards: usize) -> TrainConfig {
+    TrainConfig {
+        seed: 0,
+        objective: StageObjective::Stage1(Stage1Config {
+            lpips_weight: 0.0,
+            ..Stage1Config::default()
+        }),
+        global_batch: batch,
+        micro_batch: batch,
+        shards,
+        schedule: Schedule::default(),
+        optimizer: AdamWConfig::default(),
+    }
+}
+
 /// Trains the small model for [`STEPS`] stage-1 steps on generated scenes and returns the
 /// scratch directory holding its checkpoint (`model.safetensors`); the report goes beside it.
 fn train_to_scratch() -> tempfile::TempDir {
@@ -69,23 +86,13 @@ fn train_to_scratch() -> tempfile::TempDir {
         },
     );
     let model_config = XFactorConfig::small(SIDE);
-    let config = TrainConfig {
-        seed: 0,
-        objective: StageObjective::Stage1(Stage1Config {
-            lpips_weight: 0.0,
-            ..Stage1Config::default()
-        }),
-        global_batch: 16,
-        micro_batch: 16,
-        shards: 2,
-        schedule: Schedule {
-            initial_lr: 1e-5,
-            peak_lr: 2e-3,
-            final_lr: 1e-4,
-            warmup_steps: 20,
-            total_steps: STEPS,
-        },
-        optimizer: AdamWConfig::default(),
+    let mut config = stage1_without_lpips(16, 2);
+    config.schedule = Schedule {
+        initial_lr: 1e-5,
+        peak_lr: 2e-3,
+        final_lr: 1e-4,
+        warmup_steps: 20,
+        total_steps: STEPS,
     };
     let model = XFactor::new(&model_config, 0, &device).unwrap();
     let mut trainer = Trainer::new(config, model_config, model, None, &device).unwrap();
@@ -227,18 +234,7 @@ fn a_checkpoint_whose_compute_the_device_lacks_is_refused_naming_the_key() {
     let cpu = Device::flex().autodiff();
     let mut model_config = XFactorConfig::tiny(SIDE);
     model_config.compute = settings::model::Precision::Bf16;
-    let config = TrainConfig {
-        seed: 0,
-        objective: StageObjective::Stage1(Stage1Config {
-            lpips_weight: 0.0,
-            ..Stage1Config::default()
-        }),
-        global_batch: 1,
-        micro_batch: 1,
-        shards: 1,
-        schedule: Schedule::default(),
-        optimizer: AdamWConfig::default(),
-    };
+    let config = stage1_without_lpips(1, 1);
     let model = XFactor::new(&model_config, 0, &cpu).unwrap();
     let trainer = Trainer::new(config, model_config, model, None, &cpu).unwrap();
     let scratch = tempfile::tempdir().unwrap();
