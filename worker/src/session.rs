@@ -246,27 +246,5 @@ pub async fn heartbeats(mut client: Client, progress: Arc<Progress>, interval: D
 }
 
 #[cfg(test)]
-mod tests {
-    use super::{PollFailure, poll_failure};
-    use tonic::Code;
-
-    #[test]
-    fn a_cut_long_poll_is_waited_out_and_only_the_workers_own_refusals_end_it() {
-        for code in [
-            Code::Unavailable,
-            Code::Unknown,
-            Code::Internal,
-            Code::Cancelled,
-        ] {
-            assert_eq!(poll_failure(code), PollFailure::CoordinatorSide, "{code:?}");
-        }
-        assert_eq!(poll_failure(Code::NotFound), PollFailure::NotKnown);
-        for code in [
-            Code::Unauthenticated,
-            Code::InvalidArgument,
-            Code::FailedPrecondition,
-        ] {
-            assert_eq!(poll_failure(code), PollFailure::Refused, "{code:?}");
-        }
-    }
-}
+#[path = "session_tests.rs"]
+mod tests;
