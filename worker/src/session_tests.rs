@@ -107,7 +107,7 @@ async fn resetting_proxy(target: String, reset_after: Duration) -> String {
                 if reset {
                     let forward = tokio::io::copy_bidirectional(&mut client, &mut server);
                     let _ = tokio::time::timeout(reset_after, forward).await;
-                    let _ = client.set_linger(Some(Duration::ZERO));
+                    let _ = client.set_zero_linger();
                     drop(client);
                     let _ = server.shutdown().await;
                 } else {
