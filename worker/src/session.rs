@@ -5,7 +5,7 @@ use std::sync::Arc;
 use std::sync::atomic::Ordering;
 use std::time::{Duration, Instant};
 
-use anyhow::{Context, anyhow, bail};
+use anyhow::{Context, bail};
 use proto::convert::ConvertError;
 use proto::convert::device_to_wire;
 use proto::v1::coordinator_client::CoordinatorClient;
@@ -91,18 +91,34 @@ pub async fn register(
     address: &str,
     progress: &Progress,
 ) -> anyhow::Result<Duration> {
-    let reply = client
-        .register(RegisterRequest {
-            protocol_version: proto::PROTOCOL_VERSION,
-            model_config_version: XFactorConfig::SCHEMA_VERSION,
-            worker_name: options.name.clone(),
-            collective_address: address.to_string(),
-            device: options.device.map(|device| device_to_wire(device) as i32),
-            expected_model: options.expected_model_config.as_ref().map(Into::into),
-        })
-        .await
-        .map_err(|status| anyhow!("the coordinator refused registration: {}", status.message()))?
-        .into_inner();
+    let request = RegisterRequest {
+        protocol_version: proto::PROTOCOL_VERSION,
+        model_config_version: XFactorConfig::SCHEMA_VERSION,
+        worker_name: options.name.clone(),
+        collective_address: address.to_string(),
+        device: options.device.map(|device| device_to_wire(device) as i32),
+        expected_model: options.expected_model_config.as_ref().map(Into::into),
+    };
+    // A coordinator coming up (or a connection cut) answers as the long poll's do: waited out
+    // for as long as `connect` waits; a refusal of the worker itself ends it.
+    let deadline = Instant::now() + Duration::from_secs(60);
+    let reply = loop {
+        match client.register(request.clone()).await {
+            Ok(reply) => break reply.into_inner(),
+            Err(status)
+                if poll_failure(status.code()) == PollFailure::CoordinatorSide
+                    && Instant::now() < deadline =>
+            {
+                tracing::warn!(code = ?status.code(), message = status.message(), "registration failed on the coordinator's side or the connection; retrying");
+                tokio::time::sleep(Duration::from_millis(200)).await;
+            }
+            Err(status) => bail!(
+                "the coordinator refused registration ({:?}): {}",
+                status.code(),
+                status.message()
+            ),
+        }
+    };
     progress.worker.store(reply.worker_id, Ordering::SeqCst);
     progress.known.store(true, Ordering::SeqCst);
     *progress
@@ -134,7 +150,8 @@ pub enum AwaitError {
     Malformed(#[source] ConvertError),
 }
 
-/// Whose fault a failed request for work was, by its status code.
+/// Whose fault a failed request to the coordinator (for work, or to register) was, by its
+/// status code.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 enum PollFailure {
     /// The coordinator or the connection to it: it is restarting, it failed, or the long poll
