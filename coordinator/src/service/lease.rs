@@ -158,21 +158,43 @@ impl Lease {
             source: e.into(),
         })?;
         let mut version = self.version.lock().await;
-        match self
-            .root
-            .write_if(LEASE_OBJECT, bytes, version.as_ref())
-            .await
-        {
-            Ok(written) => {
-                *version = Some(written);
-                Ok(())
+        let mut adopted = false;
+        loop {
+            match self
+                .root
+                .write_if(LEASE_OBJECT, bytes.clone(), version.as_ref())
+                .await
+            {
+                Ok(written) => {
+                    *version = Some(written);
+                    return Ok(());
+                }
+                // A renewal whose answer was lost (the store hung, the client gave up and
+                // retried) may still have landed: the lease then names this coordinator under
+                // a version it never saw. Adopted once; anyone else's lease means fenced.
+                Err(StoreError::Changed { .. }) if !adopted => {
+                    adopted = true;
+                    match self.own_version().await {
+                        Some(current) => *version = Some(current),
+                        None => return Err(LeaseError::Lost { uri }),
+                    }
+                }
+                Err(StoreError::Changed { .. }) => return Err(LeaseError::Lost { uri }),
+                Err(e) => {
+                    return Err(LeaseError::Store {
+                        uri,
+                        source: e.into(),
+                    });
+                }
             }
-            Err(StoreError::Changed { .. }) => Err(LeaseError::Lost { uri }),
-            Err(e) => Err(LeaseError::Store {
-                uri,
-                source: e.into(),
-            }),
         }
+    }
+
+    /// The lease's current version when it still names this coordinator as its holder.
+    async fn own_version(&self) -> Option<ObjectVersion> {
+        let (bytes, version) = self.root.read_versioned(LEASE_OBJECT).await.ok()?;
+        let record: Record = serde_json::from_slice(&bytes).ok()?;
+        (record.holder == self.holder).then_some(version)
     }
 }
 
@@ -219,5 +241,29 @@ mod tests {
         let second = Lease::claim(root.clone(), "second".into()).await.unwrap();
         assert!(matches!(first.renew().await, Err(LeaseError::Lost { .. })));
         second.renew().await.unwrap();
+    }
+
+    #[tokio::test]
+    async fn a_renewal_that_landed_unseen_is_adopted_and_anyone_elses_lease_fences() {
+        let root = DataRoot::in_memory("lease-unseen");
+        let lease = Lease::claim(root.clone(), "first".into()).await.unwrap();
+        // The store took a renewal whose answer never came back: same holder, new version.
+        let landed = Record {
+            holder: "first".into(),
+            renewed_unix_s: now_unix_s(),
+            released: false,
+        };
+        let bytes = serde_json::to_vec(&landed).unwrap();
+        root.write(LEASE_OBJECT, bytes).await.unwrap();
+        lease.renew().await.unwrap();
+        lease.renew().await.unwrap();
+        let taken = Record {
+            holder: "second".into(),
+            ..landed
+        };
+        root.write(LEASE_OBJECT, serde_json::to_vec(&taken).unwrap())
+            .await
+            .unwrap();
+        assert!(matches!(lease.renew().await, Err(LeaseError::Lost { .. })));
     }
 }
