@@ -218,7 +218,6 @@ impl DataPath {
         }
         let others = replicas.saturating_sub(1);
         self.staging.resize_with(others, || vec![0.0; len]);
-        self.staging.truncate(others);
     }
 
     /// Phases 1 and 2: every replica's gradients on its own thread, each added into the sum
