@@ -164,12 +164,13 @@ for n in ${RANKS//,/ }; do
 done
 
 # Unscaled and unshaped: two ranks on loopback with the paper's 1.22 GB and no compute, one
-# I/O thread each (the worker daemon's), with wire $1.
+# I/O thread each (the worker daemon's), with wire $1 on $2 lanes (0: the gRPC stream, the
+# ring's transport under TLS and before lanes, as the peer).
 host_path() {
     local peers="127.0.0.1:7201,127.0.0.1:7202" pids=()
     for r in 0 1; do
         "$WORKER" path-bench --rank "$r" --peers "$peers" --compute-s 0 --steps 3 \
-            --wire "$1" --layout-file "$LAYOUT" >"$SCRATCH/host-$r.out" &
+            --wire "$1" --lanes "$2" --layout-file "$LAYOUT" >"$SCRATCH/host-$r.out" &
         pids+=($!)
     done
     for pid in "${pids[@]}"; do wait "$pid"; done
@@ -177,6 +178,8 @@ host_path() {
 }
 
 if [ "$HOST_PATH" = 1 ]; then
-    host_path f32
-    host_path bf16
+    for wire in f32 bf16; do
+        host_path "$wire" 0
+        host_path "$wire" 1
+    done
 fi

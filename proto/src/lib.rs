@@ -17,7 +17,7 @@ pub mod v1 {
 }
 
 /// Version of the messages and their meaning. A coordinator refuses workers of another version.
-pub const PROTOCOL_VERSION: u32 = 10;
+pub const PROTOCOL_VERSION: u32 = 11;
 
 /// Largest message either side accepts (a collective chunk is at most a few MiB; assignments
 /// and reports are small). Anything bigger is refused before it is buffered.

@@ -63,7 +63,13 @@ pub struct TrainWork {
     pub devices: DeviceSet,
     /// How the ring carries the gradients between ranks.
     pub wire: WireFormat,
+    /// TCP lanes the ring runs on when the job runs without TLS, each on a thread of its
+    /// own (`workers.allreduce_lanes`); 0: one gRPC stream.
+    pub lanes: usize,
 }
+
+/// Most lanes a ring may have.
+pub const MAX_RING_LANES: usize = 64;
 
 /// How often the replicas hash their parameters for the coordinator to compare
 /// (`workers.checksum_every` in the cluster YAML: `auto`, the default, or a step count).

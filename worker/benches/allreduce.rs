@@ -1,5 +1,6 @@
 //! All-reduce time and algorithmic bandwidth (buffer size / time) between two worker processes
-//! on loopback, for 1, 16, 64 and 100 MB of float32; then the per-step time of the benchmark
+//! on loopback, for 1, 16, 64 and 100 MB of float32, on one TCP lane (the default transport)
+//! and on the gRPC stream (the transport under TLS, and the peer); then the per-step time of the benchmark
 //! model trained by 1 and by 2 worker processes (through the real coordinator), and the share
 //! of the 2-worker step spent in the all-reduce.
 //!
@@ -31,7 +32,8 @@ fn field(line: &str, key: &str) -> Option<f64> {
         .and_then(|v| v.parse::<f64>().ok())
 }
 
-fn all_reduce_figures(worker: &Path, repeats: &str) -> Vec<String> {
+/// Figures of the ring on `lanes` lanes (0: the gRPC stream), their keys ending in `label`.
+fn all_reduce_figures(worker: &Path, repeats: &str, lanes: usize, label: &str) -> Vec<String> {
     let sizes = "1,16,64,100";
     let peers = format!("127.0.0.1:{},127.0.0.1:{}", free_port(), free_port());
     let spawn = |rank: usize| {
@@ -44,6 +46,7 @@ fn all_reduce_figures(worker: &Path, repeats: &str) -> Vec<String> {
                 &peers,
             ])
             .args(["--sizes-mb", sizes, "--repeats", repeats])
+            .args(["--lanes", &lanes.to_string()])
             .stdout(Stdio::piped())
             .spawn()
             .expect("start a benchmark rank")
@@ -59,7 +62,7 @@ fn all_reduce_figures(worker: &Path, repeats: &str) -> Vec<String> {
     for line in outputs[0].lines() {
         if let (Some(size), Some(seconds)) = (field(line, "size_mb"), field(line, "seconds")) {
             figures.push(format!(
-                "time_ms_{size}mb={:.3} algbw_gbs_{size}mb={:.3}",
+                "time_ms_{size}mb_{label}={:.3} algbw_gbs_{size}mb_{label}={:.3}",
                 seconds * 1e3,
                 size / 1e3 / seconds
             ));
@@ -108,11 +111,12 @@ fn main() {
         "{} is missing: run scripts/bench-allreduce.sh (it builds the coordinator's binaries too)",
         local.display()
     );
-    let figures = all_reduce_figures(&worker, &repeats);
+    let mut figures = all_reduce_figures(&worker, &repeats, 1, "lane");
+    figures.extend(all_reduce_figures(&worker, &repeats, 0, "stream"));
     let (one, _) = model_step(&local, 1, &model_steps);
     let (two, reduce) = model_step(&local, 2, &model_steps);
     println!(
-        "bench=allreduce ranks=2 transport=grpc-loopback chunk_mib=1 io_threads=1 repeats={repeats} {} model=benchmark global_batch=8 model_steps={model_steps} step_s_1worker={one:.4} step_s_2workers={two:.4} speedup_2workers={:.2} allreduce_s_2workers={reduce:.4} comm_share_2workers={:.3}",
+        "bench=allreduce ranks=2 transports=lane,stream link=loopback chunk_mib=1 io_threads=1 repeats={repeats} {} model=benchmark global_batch=8 model_steps={model_steps} step_s_1worker={one:.4} step_s_2workers={two:.4} speedup_2workers={:.2} allreduce_s_2workers={reduce:.4} comm_share_2workers={:.3}",
         figures.join(" "),
         one / two,
         reduce / two

@@ -60,6 +60,7 @@ fn join_and_serve(
             .map(WorkerTls::peers)
             .transpose()?
             .flatten(),
+        lanes: crate::collective::DEFAULT_LANES,
     };
     let collective = CollectiveService::default();
     let mailbox = collective.mailbox();

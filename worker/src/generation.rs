@@ -199,13 +199,17 @@ async fn join_ring(
             left: ring.left.clone(),
         })
         .unwrap_or_default();
+    let link = crate::collective::Link {
+        lanes: work.lanes,
+        ..context.link.clone()
+    };
     Ok(Ring::connect(
         context.mailbox,
         work.rank,
         &work.peers,
         generation,
         &keys,
-        context.link,
+        &link,
         context.progress.generation_token(),
     )
     .await?

@@ -45,6 +45,7 @@ fn help_lists_every_flag_with_its_default() {
             ("--sizes-mb", Some("1,16,64,100")),
             ("--repeats", Some("5")),
             ("--threads", Some("1")),
+            ("--lanes", Some("1")),
             ("--chunk-values", None),
         ],
     );

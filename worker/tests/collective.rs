@@ -20,6 +20,7 @@ fn plain() -> Link {
         token: TOKEN.into(),
         timeout: Duration::from_secs(10),
         tls: None,
+        lanes: 0,
     }
 }
 

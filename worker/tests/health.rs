@@ -15,6 +15,7 @@ async fn the_collective_port_answers_health_checks_without_the_token() {
         token: "health-test".into(),
         timeout: Duration::from_secs(10),
         tls: None,
+        lanes: 0,
     };
     let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
     let address = format!("http://{}", listener.local_addr().unwrap());

@@ -138,6 +138,14 @@ pub enum RuleViolation {
         /// Where the key is.
         at: AtLine,
     },
+    /// More ring lanes than a ring may have.
+    #[error("workers.allreduce_lanes: expected at most {max}, found {lanes}{at}", max = settings::work::MAX_RING_LANES)]
+    TooManyLanes {
+        /// `workers.allreduce_lanes`.
+        lanes: usize,
+        /// Where the key is.
+        at: AtLine,
+    },
     /// More steps than one stage may have.
     #[error("{stage}.steps: expected at most {max}, found {steps}{at}", max = MAX_STEPS)]
     TooManySteps {
@@ -344,6 +352,12 @@ impl ClusterConfig {
             return Err(RuleViolation::TooManyWorkers {
                 expected: workers.expected.0,
                 at: at(&["workers", "expected"]),
+            });
+        }
+        if workers.allreduce_lanes > settings::work::MAX_RING_LANES {
+            return Err(RuleViolation::TooManyLanes {
+                lanes: workers.allreduce_lanes,
+                at: at(&["workers", "allreduce_lanes"]),
             });
         }
         for (stage, steps, global) in [

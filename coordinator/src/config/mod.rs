@@ -380,6 +380,9 @@ pub struct WorkersConfig {
     /// How the ring carries gradients: `f32` (every bit) or `bf16` (half the bytes, summed
     /// in float32).
     pub allreduce_wire: WireFormat,
+    /// TCP lanes of the ring, each on a thread of its own, when the job runs without TLS
+    /// (1, the default; at most 64); 0: one gRPC stream, as under TLS.
+    pub allreduce_lanes: usize,
 }
 
 impl Default for WorkersConfig {
@@ -398,6 +401,7 @@ impl Default for WorkersConfig {
             exclusion_s: NonNegative(30.0),
             checksum_every: ChecksumEvery::Auto,
             allreduce_wire: WireFormat::F32,
+            allreduce_lanes: 1,
         }
     }
 }

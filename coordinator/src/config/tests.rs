@@ -394,6 +394,15 @@ fn the_data_path_settings_default_to_auto_checksums_and_a_float32_wire() {
     let config = ClusterConfig::from_yaml(&yaml, "cluster.yaml").unwrap();
     assert_eq!(config.workers.checksum_every, ChecksumEvery::Steps(4));
     assert_eq!(config.workers.allreduce_wire, WireFormat::Bf16);
+    assert_eq!(config.workers.allreduce_lanes, 1);
+    let yaml = format!("{GOOD}workers:\n  allreduce_lanes: 4\n");
+    let lanes = ClusterConfig::from_yaml(&yaml, "cluster.yaml").unwrap();
+    assert_eq!(lanes.workers.allreduce_lanes, 4);
+    let too_many = error_of(&format!("{GOOD}workers:\n  allreduce_lanes: 65\n"));
+    assert!(
+        too_many.contains("workers.allreduce_lanes") && too_many.contains("at most 64"),
+        "{too_many}"
+    );
     let wire = error_of(&format!("{GOOD}workers:\n  allreduce_wire: fp8\n"));
     assert!(
         wire.contains("workers.allreduce_wire") && wire.contains("line 26"),

@@ -62,6 +62,7 @@ pub fn train(
             ring: None,
             devices: config.workers.devices.clone(),
             wire: config.workers.allreduce_wire,
+            lanes: config.workers.allreduce_lanes,
         })),
     }
 }

@@ -114,6 +114,7 @@ impl TryFrom<&v1::TrainAssignment> for TrainWork {
             ring: ring_from_wire(&wire.ring_secret, &wire.left_ring_secret)?,
             devices: devices_from_wire(wire.devices.as_ref())?,
             wire: wire_format_from_wire(wire.wire)?,
+            lanes: lanes_from_wire(wire.ring_lanes)?,
         })
     }
 }
@@ -153,8 +154,23 @@ impl From<&TrainWork> for v1::TrainAssignment {
             left_ring_secret,
             devices: Some(devices_to_wire(&work.devices)),
             wire: wire_format_to_wire(work.wire) as i32,
+            ring_lanes: work.lanes as u32,
         }
     }
+}
+
+fn lanes_from_wire(lanes: u32) -> Result<usize, ConvertError> {
+    let lanes = lanes as usize;
+    if lanes > settings::work::MAX_RING_LANES {
+        return Err(ConvertError::Malformed {
+            field: "train.ring_lanes",
+            reason: format!(
+                "{lanes} lanes, more than the {} a ring may have",
+                settings::work::MAX_RING_LANES
+            ),
+        });
+    }
+    Ok(lanes)
 }
 
 fn wire_format_from_wire(value: i32) -> Result<WireFormat, ConvertError> {

@@ -51,6 +51,7 @@ fn train_work(start: TrainStart, ring: Option<RingSecrets>) -> TrainWork {
         ring,
         devices: DeviceSet::Ids(vec![0, 2]),
         wire: WireFormat::Bf16,
+        lanes: 3,
     }
 }
 
@@ -144,7 +145,7 @@ fn missing_parts_of_a_train_assignment_are_named() {
 #[test]
 fn malformed_train_assignments_are_refused_with_the_field() {
     let whole = wire(&train_work(TrainStart::Fresh, None));
-    let cases: [Breakage<v1::TrainAssignment>; 8] = [
+    let cases: [Breakage<v1::TrainAssignment>; 9] = [
         (|w| w.rank = 2, "train.rank"),
         (|w| w.world_size = 3, "train.peers"),
         (|w| w.checkpoint_every = 0, "train.checkpoint_every"),
@@ -167,6 +168,7 @@ fn malformed_train_assignments_are_refused_with_the_field() {
             },
             "train.devices",
         ),
+        (|w| w.ring_lanes = 65, "train.ring_lanes"),
     ];
     for (break_it, field) in cases {
         let mut broken = whole.clone();

@@ -31,6 +31,14 @@ pub struct RankArgs {
         value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..)
     )]
     pub threads: usize,
+    /// TCP lanes of the ring, each on a thread of its own (0: the gRPC stream, as under TLS)
+    #[arg(
+        long,
+        value_name = "N",
+        default_value_t = 1,
+        value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(0..=crate::collective::MAX_LANES as u64)
+    )]
+    pub lanes: usize,
 }
 
 impl RankArgs {
@@ -60,6 +68,7 @@ impl RankArgs {
             token: BENCH_TOKEN.into(),
             timeout: Duration::from_secs(60),
             tls: None,
+            lanes: self.lanes,
         };
         spawn_server(listener, service, &link)?;
         let left = (rank + peers.len() - 1) % peers.len();

@@ -226,7 +226,7 @@ fn summary(args: &PathBenchArgs, parameters: usize, steps: &[(f64, StepFigures)]
     let bytes = parameters as f64 * 4.0;
     let gb = |seconds: f64| bytes / 1e9 / seconds.max(1e-12);
     format!(
-        "ranks={} model={} scale={} replicas={} wire={} params={parameters} payload_mb={:.3} \
+        "ranks={} model={} scale={} replicas={} wire={} lanes={} params={parameters} payload_mb={:.3} \
          compute_s={:.3} steps={} step_s={step_s:.4} copy_s={copy_s:.4} copy_gbs={:.2} \
          local_reduce_s={local_reduce_s:.4} ring_s={ring_s:.4} ring_algbw_gbs={:.3} \
          upload_s={upload_s:.4} upload_gbs={:.2} update_s={update_s:.4} \
@@ -237,6 +237,7 @@ fn summary(args: &PathBenchArgs, parameters: usize, steps: &[(f64, StepFigures)]
         args.scale,
         args.replicas,
         args.wire.name(),
+        args.ring.lanes,
         bytes / 1e6,
         args.compute_s,
         steps.len(),

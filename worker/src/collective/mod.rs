@@ -17,12 +17,18 @@ use tokio::sync::mpsc;
 use tokio_stream::wrappers::UnboundedReceiverStream;
 use tokio_util::sync::CancellationToken;
 
+mod lane;
+mod lanes;
+mod schedule;
 mod service;
 mod wire;
 
-use service::Inbound;
+use lane::Lane;
+use schedule::Schedule;
+use service::{AdmittedLane, Inbound};
 pub use service::{
-    CollectiveService, INBOX_CHUNKS, Mailbox, RING_SECRET_KEY, RingKeys, server, spawn_server,
+    CollectiveService, INBOX_CHUNKS, MAX_LANES, Mailbox, RING_SECRET_KEY, RingKeys, server,
+    spawn_server,
 };
 use wire::Encoding;
 pub use wire::WireFormat;
@@ -30,6 +36,9 @@ pub use wire::WireFormat;
 /// Values per chunk (1 MiB of `f32`): big enough to amortise per-message costs, small enough to
 /// pipeline.
 pub const CHUNK_VALUES: usize = 256 * 1024;
+
+/// Lanes of a ring unless the assignment says otherwise.
+pub const DEFAULT_LANES: usize = 1;
 
 /// What went wrong in a collective. The caller's buffer may be partly reduced and must be
 /// discarded; the model was not touched.
@@ -98,6 +107,10 @@ pub struct Link {
     pub timeout: Duration,
     /// TLS for the Collective service and for dialling peers; `None`: plain HTTP/2.
     pub tls: Option<PeerTls>,
+    /// TCP lanes the ring runs on without TLS (`lane`), each on a thread of its own; 0, or a
+    /// job with TLS: the chunks travel as messages of one gRPC stream. Every rank of a ring
+    /// must use the same number.
+    pub lanes: usize,
 }
 
 /// A rank's TLS: its own server identity and the trust it puts in its peers'.
@@ -147,6 +160,8 @@ pub struct Ring {
     timeout: Duration,
     chunk_values: usize,
     wire: WireFormat,
+    /// The ring's lanes; empty: it runs on the gRPC stream.
+    lanes: Vec<Lane>,
 }
 
 impl Ring {
@@ -175,14 +190,27 @@ impl Ring {
             timeout,
             chunk_values: CHUNK_VALUES,
             wire: WireFormat::F32,
+            lanes: Vec::new(),
         };
         if world == 1 {
             return Ok(ring);
         }
         // Joined first, so the left neighbour's stream is admitted while this rank dials.
-        ring.inbox = Some(mailbox.join(generation, &keys.left));
+        let inboxes = mailbox.join(generation, &keys.left);
         let right = (rank + 1) % world;
         let address = &peers[right];
+        if link.tls.is_none() && link.lanes > 0 {
+            let hello = proto::v1::LaneHello {
+                token: link.token.clone(),
+                ring_secret: keys.own.clone(),
+                generation,
+                lane: 0,
+                lanes: link.lanes as u32,
+            };
+            ring.lanes = ring.open_lanes(address, hello, inboxes.lanes).await?;
+            return Ok(ring);
+        }
+        ring.inbox = Some(inboxes.chunks);
         let failed = |reason: String| CollectiveError::Connect {
             rank: right,
             address: address.clone(),
@@ -248,15 +276,14 @@ impl Ring {
         self.chunk_values = values.max(1);
     }
 
-    fn segment(&self, len: usize, index: usize) -> (usize, usize) {
-        (index * len / self.world, (index + 1) * len / self.world)
-    }
-
-    fn chunks(&self, begin: usize, end: usize) -> impl Iterator<Item = (usize, usize)> + use<> {
-        let step = self.chunk_values;
-        (begin..end)
-            .step_by(step)
-            .map(move |start| (start, (start + step).min(end)))
+    /// The cut of a buffer of `len` values.
+    fn schedule(&self, len: usize) -> Schedule {
+        Schedule {
+            world: self.world,
+            rank: self.rank,
+            chunk_values: self.chunk_values,
+            len,
+        }
     }
 
     fn send(
@@ -310,15 +337,20 @@ impl Ring {
         }
     }
 
-    /// [`Ring::all_reduce`] as a task on `runtime`'s worker threads, where the streams' I/O
-    /// runs, instead of on the calling thread: chunks then go from socket to reduction without
-    /// a hand-off between threads. Blocking; returns the ring and the summed values.
+    /// [`Ring::all_reduce`] from a thread outside the runtime: on the ring's lanes, on
+    /// threads of their own; on the gRPC stream, as a task on `runtime`'s worker threads,
+    /// where the stream's I/O runs, so chunks go from socket to reduction without a hand-off
+    /// between threads. Blocking; returns the ring and the summed values.
     pub fn all_reduce_on(
         mut self,
         runtime: &tokio::runtime::Runtime,
         mut values: Vec<f32>,
         exact_tail: usize,
     ) -> Result<(Self, Vec<f32>, ReduceStats), CollectiveError> {
+        if !self.lanes.is_empty() {
+            let stats = self.reduce_on_lanes(&mut values, exact_tail)?;
+            return Ok((self, values, stats));
+        }
         let task = runtime.spawn(async move {
             let stats = self.all_reduce(&mut values, exact_tail).await;
             stats.map(|stats| (self, values, stats))
@@ -329,48 +361,53 @@ impl Ring {
     }
 
     /// Sums `values` element-wise across all ranks, in place; every rank ends with the same
-    /// sum. The last `exact_tail` values travel in float32 whatever the ring's wire.
+    /// sum. The last `exact_tail` values travel in float32 whatever the ring's wire. On lanes
+    /// the calling thread blocks (a multi-threaded runtime moves its other tasks away first).
     pub async fn all_reduce(
         &mut self,
         values: &mut [f32],
         exact_tail: usize,
     ) -> Result<ReduceStats, CollectiveError> {
+        if !self.lanes.is_empty() {
+            let multi_threaded = tokio::runtime::Handle::current().runtime_flavor()
+                == tokio::runtime::RuntimeFlavor::MultiThread;
+            return if multi_threaded {
+                tokio::task::block_in_place(|| self.reduce_on_lanes(values, exact_tail))
+            } else {
+                self.reduce_on_lanes(values, exact_tail)
+            };
+        }
         let start = Instant::now();
         let (n, r) = (self.world, self.rank);
         if n == 1 {
             return Ok(ReduceStats::default());
         }
-        let len = values.len();
+        let schedule = self.schedule(values.len());
         let encoding = Encoding {
             wire: self.wire,
-            exact_from: len.saturating_sub(exact_tail),
+            exact_from: values.len().saturating_sub(exact_tail),
         };
         let mut bytes_sent = 0u64;
-        let (begin, end) = self.segment(len, r);
-        for (a, b) in self.chunks(begin, end) {
+        for (a, b) in schedule.first_sends() {
             bytes_sent += self.send(0, r, a, &values[a..b], &encoding)? as u64;
         }
-        let steps = 2 * (n - 1);
-        for step in 0..steps {
-            let segment = if step < n - 1 {
-                (r + n - step - 1) % n
-            } else {
-                (r + n - (step - (n - 1))) % n
-            };
-            let (begin, end) = self.segment(len, segment);
-            let pieces: Vec<(usize, usize)> = self.chunks(begin, end).collect();
-            for (a, b) in pieces {
-                let chunk = self.receive().await?;
-                self.check(&chunk, step as u32, segment, a, b, &encoding)?;
-                let target = &mut values[a..b];
-                encoding.absorb(a, target, &chunk.values, step < n - 1);
-                if step == n - 2 {
-                    // This rank owns the segment now: what it keeps is what the others get.
-                    encoding.round_owned(a, target);
-                }
-                if step + 1 < steps {
-                    bytes_sent += self.send(step as u32 + 1, segment, a, target, &encoding)? as u64;
-                }
+        for delivery in schedule.deliveries() {
+            let (step, segment, a, b) = (
+                delivery.step,
+                delivery.segment,
+                delivery.begin,
+                delivery.end,
+            );
+            let chunk = self.receive().await?;
+            self.check(&chunk, step as u32, segment, a, b, &encoding)?;
+            let target = &mut values[a..b];
+            encoding.absorb(a, target, &chunk.values, schedule.adds(step));
+            if schedule.completes(step) {
+                // This rank owns the segment now: what it keeps is what the others get.
+                encoding.round_owned(a, target);
+            }
+            if step + 1 < schedule.steps() {
+                bytes_sent += self.send(step as u32 + 1, segment, a, target, &encoding)? as u64;
             }
         }
         self.operation += 1;

@@ -25,6 +25,9 @@ pub const RING_SECRET_KEY: &str = "x-xfactor-ring";
 /// Chunks held for the ring before the sender is slowed down (at most 16 MiB of 1 MiB chunks).
 pub const INBOX_CHUNKS: usize = 16;
 
+/// Most lanes a ring may have.
+pub const MAX_LANES: usize = settings::work::MAX_RING_LANES;
+
 /// Longest a stream waits for this rank to join its generation.
 const ADMISSION_WAIT: Duration = Duration::from_secs(60);
 
@@ -60,7 +63,29 @@ pub struct RingKeys {
 struct Joined {
     generation: u64,
     left_secret: String,
+    doors: Doors,
+}
+
+/// Where an admitted left neighbour's traffic goes: its gRPC stream's chunks, or its lanes.
+#[derive(Clone)]
+pub(super) struct Doors {
     inbox: mpsc::Sender<Inbound>,
+    lanes: mpsc::Sender<AdmittedLane>,
+}
+
+/// A lane connection from the left neighbour, admitted: which lane of how many.
+pub(super) struct AdmittedLane {
+    pub(super) lane: u32,
+    pub(super) lanes: u32,
+    pub(super) stream: tokio::net::TcpStream,
+}
+
+/// What a ring reads from after joining a generation.
+pub(super) struct Inboxes {
+    /// The chunks of the left neighbour's gRPC stream.
+    pub(super) chunks: mpsc::Receiver<Inbound>,
+    /// The left neighbour's lane connections, as they are admitted.
+    pub(super) lanes: mpsc::Receiver<AdmittedLane>,
 }
 
 /// Where incoming chunks wait for the ring of the generation this rank is in.
@@ -79,27 +104,31 @@ enum Refused {
 }
 
 impl Mailbox {
-    /// Joins `generation`, whose left neighbour must present `left_secret`; returns the inbox
-    /// its chunks arrive in. Streams of older generations are cut off.
-    pub(super) fn join(&self, generation: u64, left_secret: &str) -> mpsc::Receiver<Inbound> {
-        let (inbox, receiver) = mpsc::channel(INBOX_CHUNKS);
+    /// Joins `generation`, whose left neighbour must present `left_secret`; returns the
+    /// inboxes its chunks and lanes arrive in. Streams of older generations are cut off.
+    pub(super) fn join(&self, generation: u64, left_secret: &str) -> Inboxes {
+        let (inbox, chunks) = mpsc::channel(INBOX_CHUNKS);
+        let (lane_door, lanes) = mpsc::channel(MAX_LANES);
         *self.lock() = Some(Joined {
             generation,
             left_secret: left_secret.to_string(),
-            inbox,
+            doors: Doors {
+                inbox,
+                lanes: lane_door,
+            },
         });
         self.changed.notify_waiters();
-        receiver
+        Inboxes { chunks, lanes }
     }
 
-    /// The inbox for a stream of `generation` presenting `secret`, waiting for this rank to
+    /// The doors for traffic of `generation` presenting `secret`, waiting for this rank to
     /// join that generation.
-    async fn admit(&self, generation: u64, secret: &str) -> Result<mpsc::Sender<Inbound>, Status> {
+    pub(super) async fn admit(&self, generation: u64, secret: &str) -> Result<Doors, Status> {
         let deadline = tokio::time::Instant::now() + ADMISSION_WAIT;
         loop {
             let changed = self.changed.notified();
             match self.try_admit(generation, secret) {
-                Ok(Some(inbox)) => return Ok(inbox),
+                Ok(Some(doors)) => return Ok(doors),
                 Ok(None) => {}
                 Err(Refused::Stale(current)) => {
                     return Err(Status::failed_precondition(format!(
@@ -126,18 +155,14 @@ impl Mailbox {
     }
 
     /// `Ok(None)`: this rank has not joined `generation` yet.
-    fn try_admit(
-        &self,
-        generation: u64,
-        secret: &str,
-    ) -> Result<Option<mpsc::Sender<Inbound>>, Refused> {
+    fn try_admit(&self, generation: u64, secret: &str) -> Result<Option<Doors>, Refused> {
         match self.lock().as_ref() {
             Some(joined) if joined.generation > generation => {
                 Err(Refused::Stale(joined.generation))
             }
             Some(joined) if joined.generation == generation => {
                 if proto::constant_time_equal(secret.as_bytes(), joined.left_secret.as_bytes()) {
-                    Ok(Some(joined.inbox.clone()))
+                    Ok(Some(joined.doors.clone()))
                 } else {
                     Err(Refused::WrongSecret)
                 }
@@ -191,7 +216,7 @@ impl CollectiveService {
             return Ok(Response::new(PushAck { chunks: 0 }));
         };
         let generation = first.generation;
-        let inbox = self.mailbox.admit(generation, &secret).await?;
+        let inbox = self.mailbox.admit(generation, &secret).await?.inbox;
         let mut next = Some(first);
         let mut chunks = 0u64;
         loop {
@@ -239,7 +264,8 @@ pub fn spawn_server(
 
 /// The server of `service` on `listener` behind the job-token check (and TLS when `link` has
 /// it), with flow-control windows sized for megabyte chunks, and `grpc.health.v1` beside it
-/// without the check; it serves until dropped. Also returns the health service's reporter.
+/// without the check; lane connections on the same port go to the mailbox
+/// ([`LaneDesk`]). It serves until dropped. Also returns the health service's reporter.
 pub fn server(
     listener: tokio::net::TcpListener,
     service: CollectiveService,
@@ -251,6 +277,7 @@ pub fn server(
     ),
     super::CollectiveError,
 > {
+    let mailbox = service.mailbox();
     let server = tonic::service::interceptor::InterceptedService::new(
         proto::v1::collective_server::CollectiveServer::new(service)
             .max_decoding_message_size(proto::MAX_MESSAGE_BYTES),
@@ -264,6 +291,12 @@ pub fn server(
     }
     let (reporter, health) = tonic_health::server::health_reporter();
     let serving = reporter.clone();
+    let (grpc, incoming) = mpsc::channel(MAX_LANES);
+    let lanes = LaneDesk {
+        mailbox: mailbox.clone(),
+        token: link.token.clone(),
+        tls: link.tls.is_some(),
+    };
     let run = async move {
         serving
             .set_serving::<proto::v1::collective_server::CollectiveServer<CollectiveService>>()
@@ -273,14 +306,130 @@ pub fn server(
             .initial_stream_window_size(Some(16 * 1024 * 1024))
             .initial_connection_window_size(Some(32 * 1024 * 1024))
             .max_frame_size(Some(1024 * 1024))
-            .tcp_nodelay(true)
             .add_service(server)
             .add_service(health)
-            .serve_with_incoming(tokio_stream::wrappers::TcpListenerStream::new(listener))
-            .await;
-        if let Err(error) = served {
-            tracing::warn!(%error, "the collective server stopped");
+            .serve_with_incoming(tokio_stream::wrappers::ReceiverStream::new(incoming));
+        tokio::select! {
+            served = served => if let Err(error) = served {
+                tracing::warn!(%error, "the collective server stopped");
+            },
+            () = lanes.route(listener, grpc) => {}
         }
     };
     Ok((reporter, run))
+}
+
+/// Longest a new connection may take to show whether it is a lane, and a lane to say hello.
+const LANE_HELLO_WAIT: Duration = Duration::from_secs(10);
+
+/// The listener's desk for lane connections: they share the Collective port with gRPC and
+/// are told apart by their first bytes.
+struct LaneDesk {
+    mailbox: Arc<Mailbox>,
+    token: String,
+    tls: bool,
+}
+
+impl LaneDesk {
+    /// Accepts connections until the listener fails: lanes are admitted here, the rest handed
+    /// to the gRPC server through `grpc`. Each connection is sorted on a task of its own, so a
+    /// silent one holds up nobody.
+    async fn route(
+        self,
+        listener: tokio::net::TcpListener,
+        grpc: mpsc::Sender<std::io::Result<tokio::net::TcpStream>>,
+    ) {
+        let desk = Arc::new(self);
+        loop {
+            let stream = match listener.accept().await {
+                Ok((stream, _)) => stream,
+                Err(error) => {
+                    tracing::warn!(%error, "the collective listener could not accept");
+                    tokio::time::sleep(Duration::from_millis(100)).await;
+                    continue;
+                }
+            };
+            // Chunks are small and latency-bound at the pipeline's ends.
+            let _ = stream.set_nodelay(true);
+            let (desk, grpc) = (desk.clone(), grpc.clone());
+            tokio::spawn(async move {
+                if opens_lane(&stream).await {
+                    desk.admit(stream).await;
+                } else {
+                    let _ = grpc.send(Ok(stream)).await;
+                }
+            });
+        }
+    }
+
+    /// Reads a lane's hello, answers it, and hands an admitted lane to its ring.
+    async fn admit(&self, mut stream: tokio::net::TcpStream) {
+        let hello =
+            match tokio::time::timeout(LANE_HELLO_WAIT, super::lane::read_hello(&mut stream)).await
+            {
+                Ok(Ok(hello)) => hello,
+                Ok(Err(reason)) => {
+                    tracing::warn!(%reason, "a lane connection sent no readable hello");
+                    return;
+                }
+                Err(_) => return,
+            };
+        let admitted = self.check(&hello).await;
+        let refusal = admitted.as_ref().err().cloned().unwrap_or_default();
+        if !refusal.is_empty() {
+            tracing::warn!(generation = hello.generation, %refusal, "a lane was refused");
+        }
+        if super::lane::answer(&mut stream, &refusal).await.is_err() {
+            return;
+        }
+        if let Ok(doors) = admitted {
+            let lane = AdmittedLane {
+                lane: hello.lane,
+                lanes: hello.lanes,
+                stream,
+            };
+            let _ = doors.lanes.send(lane).await;
+        }
+    }
+
+    /// Whether `hello` may join this rank's ring, as the Push stream's checks decide.
+    async fn check(&self, hello: &proto::v1::LaneHello) -> Result<Doors, String> {
+        if self.tls {
+            return Err("this rank's ring runs over TLS, which lanes do not".into());
+        }
+        if !proto::constant_time_equal(hello.token.as_bytes(), self.token.as_bytes()) {
+            return Err("wrong job token".into());
+        }
+        if hello.lanes == 0 || hello.lane >= hello.lanes || hello.lanes as usize > MAX_LANES {
+            return Err(format!(
+                "lane {} of {} (at most {MAX_LANES} lanes)",
+                hello.lane, hello.lanes
+            ));
+        }
+        self.mailbox
+            .admit(hello.generation, &hello.ring_secret)
+            .await
+            .map_err(|status| status.message().to_string())
+    }
+}
+
+/// Whether `stream` opens with [`super::lane::LANE_MAGIC`] (waiting for its first bytes at
+/// most [`LANE_HELLO_WAIT`]); gRPC clients speak first too (HTTP/2's preface or TLS's hello).
+async fn opens_lane(stream: &tokio::net::TcpStream) -> bool {
+    let magic = super::lane::LANE_MAGIC;
+    let sniff = async {
+        let mut first = [0u8; 8];
+        loop {
+            match stream.peek(&mut first).await {
+                Ok(0) | Err(_) => return false,
+                Ok(seen) if first[..seen] != magic[..seen] => return false,
+                Ok(seen) if seen == magic.len() => return true,
+                // A prefix of the magic so far: look again once more has come.
+                Ok(_) => tokio::time::sleep(Duration::from_millis(5)).await,
+            }
+        }
+    };
+    tokio::time::timeout(LANE_HELLO_WAIT, sniff)
+        .await
+        .unwrap_or(false)
 }

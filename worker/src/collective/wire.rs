@@ -32,6 +32,13 @@ impl Encoding {
         self.exact_from.clamp(begin, end) - begin
     }
 
+    /// Whether values `begin..end` travel as the float32 bytes they are in memory (so a chunk
+    /// can be written from the buffer and read into it as it lies).
+    pub(super) fn is_plain(&self, begin: usize, end: usize) -> bool {
+        cfg!(target_endian = "little")
+            && (self.wire == WireFormat::F32 || self.wire_values(begin, end) == 0)
+    }
+
     /// Bytes of the chunk of values `begin..end`.
     pub(super) fn chunk_bytes(&self, begin: usize, end: usize) -> usize {
         let wired = self.wire_values(begin, end);

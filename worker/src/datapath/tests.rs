@@ -22,6 +22,7 @@ fn lone_ring(runtime: &Runtime) -> Ring {
         token: "token".into(),
         timeout: Duration::from_secs(5),
         tls: None,
+        lanes: 1,
     };
     let mailbox = CollectiveService::default().mailbox();
     let peers = ["127.0.0.1:1".to_string()];
@@ -385,6 +386,7 @@ fn train_two_ranks(wire: WireFormat, steps: usize) -> Vec<(f32, Option<u32>, Opt
         token: "token".into(),
         timeout: Duration::from_secs(20),
         tls: None,
+        lanes: 1,
     };
     let servers: Vec<(String, std::sync::Arc<crate::collective::Mailbox>)> = (0..2)
         .map(|_| {

@@ -1,0 +1,534 @@
+//! The ring's lanes: plain TCP connections that carry chunks as views of the buffer.
+//!
+//! Over gRPC every chunk is copied four times in user space (into its message, into the
+//! encoder's buffer, into the decoder's, and out into the sum), which bounds the ring at about
+//! a gigabyte a second per core. A lane writes each chunk straight from the buffer to its
+//! socket and reads it straight into the sum's place (a kept value) or into one staging buffer
+//! it is added from, so the kernel's two copies are the only ones. The handshake and every
+//! chunk's header are the proto's messages (`LaneHello`, `LaneAnswer`, `LaneChunk`), each
+//! preceded by its length.
+//!
+//! One lane is one thread and one connection each way, driven by a single loop that writes
+//! whatever its right neighbour can take and reads whatever its left neighbour sent, so it
+//! never waits on one direction while the other could move. A ring of several lanes cuts the
+//! buffer into one range per lane and runs the lanes on threads of their own, so a host with
+//! cores to spare fills a link no single core could.
+
+use std::time::Instant;
+
+use prost::Message;
+use proto::v1::{LaneAnswer, LaneChunk, LaneHello};
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use tokio::net::TcpStream;
+use tokio_util::sync::CancellationToken;
+
+use super::CollectiveError;
+use super::schedule::{Delivery, Schedule};
+use super::wire::Encoding;
+
+/// The first bytes of a lane connection (a gRPC connection opens with HTTP/2's preface or a
+/// TLS hello, never with these).
+pub const LANE_MAGIC: &[u8; 8] = b"XFLANE01";
+
+/// Longest handshake message either side reads.
+const MAX_HANDSHAKE_BYTES: usize = 64 * 1024;
+
+/// Longest chunk header a lane reads.
+const MAX_HEADER_BYTES: usize = 64;
+
+/// `message` preceded by its length as a little-endian u32.
+pub(super) fn framed(message: &impl Message) -> Vec<u8> {
+    let body = message.encode_to_vec();
+    let mut framed = Vec::with_capacity(4 + body.len());
+    framed.extend_from_slice(&(body.len() as u32).to_le_bytes());
+    framed.extend_from_slice(&body);
+    framed
+}
+
+/// Reads one length-prefixed message of at most `limit` bytes.
+pub(super) async fn read_framed<M: Message + Default>(
+    stream: &mut TcpStream,
+    limit: usize,
+) -> Result<M, String> {
+    let mut length = [0u8; 4];
+    stream
+        .read_exact(&mut length)
+        .await
+        .map_err(|e| e.to_string())?;
+    let length = u32::from_le_bytes(length) as usize;
+    if length > limit {
+        return Err(format!(
+            "a {length}-byte message, above the {limit} allowed"
+        ));
+    }
+    let mut body = vec![0u8; length];
+    stream
+        .read_exact(&mut body)
+        .await
+        .map_err(|e| e.to_string())?;
+    M::decode(body.as_slice()).map_err(|e| e.to_string())
+}
+
+/// Opens lane `hello.lane` to `address`: the magic, the hello, and the listener's answer.
+/// Returns the connection ready for chunks, or why it was refused.
+pub(super) async fn dial(address: &str, hello: &LaneHello) -> Result<TcpStream, DialError> {
+    let mut stream = TcpStream::connect(address)
+        .await
+        .map_err(|e| DialError::Unreachable(e.to_string()))?;
+    stream
+        .set_nodelay(true)
+        .map_err(|e| DialError::Unreachable(e.to_string()))?;
+    let mut opening = LANE_MAGIC.to_vec();
+    opening.extend_from_slice(&framed(hello));
+    stream
+        .write_all(&opening)
+        .await
+        .map_err(|e| DialError::Unreachable(e.to_string()))?;
+    let answer: LaneAnswer = read_framed(&mut stream, MAX_HANDSHAKE_BYTES)
+        .await
+        .map_err(DialError::Unreachable)?;
+    if answer.refusal.is_empty() {
+        Ok(stream)
+    } else {
+        Err(DialError::Refused(answer.refusal))
+    }
+}
+
+/// Why a lane could not be opened.
+#[derive(Debug)]
+pub(super) enum DialError {
+    /// Nothing answered (yet): worth another try until the deadline.
+    Unreachable(String),
+    /// The listener said no, and why.
+    Refused(String),
+}
+
+/// Reads a lane's hello, after its magic, from a connection the listener accepted.
+pub(super) async fn read_hello(stream: &mut TcpStream) -> Result<LaneHello, String> {
+    let mut magic = [0u8; LANE_MAGIC.len()];
+    stream
+        .read_exact(&mut magic)
+        .await
+        .map_err(|e| e.to_string())?;
+    read_framed(stream, MAX_HANDSHAKE_BYTES).await
+}
+
+/// Answers a lane's hello: an empty refusal admits it.
+pub(super) async fn answer(stream: &mut TcpStream, refusal: &str) -> std::io::Result<()> {
+    let answer = LaneAnswer {
+        refusal: refusal.to_string(),
+    };
+    stream.write_all(&framed(&answer)).await
+}
+
+/// One lane of a ring: its connections to the right and from the left neighbour, on a
+/// single-threaded runtime of its own so that it can run on any thread.
+pub(super) struct Lane {
+    right: TcpStream,
+    left: TcpStream,
+    /// Always present until dropped; taken then to shut it down without blocking, since a
+    /// ring may be dropped on any runtime's thread.
+    runtime: Option<tokio::runtime::Runtime>,
+}
+
+impl Drop for Lane {
+    fn drop(&mut self) {
+        if let Some(runtime) = self.runtime.take() {
+            runtime.shutdown_background();
+        }
+    }
+}
+
+/// What one lane's part of an all-reduce needs to know.
+pub(super) struct LaneJob<'a> {
+    /// The cut of the lane's range.
+    pub(super) schedule: Schedule,
+    /// How its values travel (positions relative to the lane's range).
+    pub(super) encoding: Encoding,
+    /// Which all-reduce of the generation.
+    pub(super) operation: u64,
+    /// Longest wait for the neighbours.
+    pub(super) timeout: std::time::Duration,
+    /// Set when the generation is abandoned.
+    pub(super) cancel: &'a CancellationToken,
+}
+
+impl Lane {
+    /// A lane over the connections `right` (dialled) and `left` (accepted), moved onto a
+    /// runtime of the lane's own.
+    pub(super) fn new(right: TcpStream, left: TcpStream) -> std::io::Result<Self> {
+        let (right, left) = (right.into_std()?, left.into_std()?);
+        let runtime = tokio::runtime::Builder::new_current_thread()
+            .enable_io()
+            .enable_time()
+            .build()?;
+        let (right, left) = {
+            let _entered = runtime.enter();
+            (TcpStream::from_std(right)?, TcpStream::from_std(left)?)
+        };
+        Ok(Self {
+            right,
+            left,
+            runtime: Some(runtime),
+        })
+    }
+
+    /// Sums `values` (this lane's range) with the other ranks' in place; returns the bytes
+    /// sent. Blocks the calling thread, which must not be a runtime's.
+    pub(super) fn all_reduce(
+        &mut self,
+        job: &LaneJob<'_>,
+        values: &mut [f32],
+    ) -> Result<u64, CollectiveError> {
+        let Self {
+            right,
+            left,
+            runtime,
+        } = self;
+        let runtime = runtime
+            .as_ref()
+            .ok_or_else(|| CollectiveError::Aborted("the lane's runtime is gone".into()))?;
+        runtime.block_on(Pump::new(job, right, left).run(values))
+    }
+}
+
+/// A chunk on its way out: its header, then its values read from the buffer when written.
+struct Outgoing {
+    header: Vec<u8>,
+    begin: usize,
+    end: usize,
+    /// The values as the wire carries them when that is not float32 (bf16), made once.
+    encoded: Option<bytes::Bytes>,
+    written: usize,
+}
+
+/// Where the chunk coming in stands.
+enum Incoming {
+    /// Its header's length prefix, then the header.
+    Header { raw: Vec<u8>, got: usize },
+    /// Its values: into the buffer itself (`direct`) or into the staging buffer.
+    Values {
+        delivery: Delivery,
+        bytes: usize,
+        direct: bool,
+        got: usize,
+    },
+}
+
+/// The loop of one lane's all-reduce: writes what the right neighbour can take, reads what
+/// the left one sent, and waits only when neither can move.
+struct Pump<'a, 'j> {
+    job: &'a LaneJob<'j>,
+    right: &'a mut TcpStream,
+    left: &'a mut TcpStream,
+    outgoing: std::collections::VecDeque<Outgoing>,
+    deliveries: std::iter::Peekable<Box<dyn Iterator<Item = Delivery>>>,
+    incoming: Incoming,
+    staging: Vec<u8>,
+    bytes_sent: u64,
+    last_progress: Instant,
+}
+
+impl<'a, 'j> Pump<'a, 'j> {
+    fn new(job: &'a LaneJob<'j>, right: &'a mut TcpStream, left: &'a mut TcpStream) -> Self {
+        let deliveries: Box<dyn Iterator<Item = Delivery>> = Box::new(job.schedule.deliveries());
+        let mut pump = Self {
+            job,
+            right,
+            left,
+            outgoing: std::collections::VecDeque::new(),
+            deliveries: deliveries.peekable(),
+            incoming: Incoming::Header {
+                raw: vec![0; 4],
+                got: 0,
+            },
+            staging: Vec::new(),
+            bytes_sent: 0,
+            last_progress: Instant::now(),
+        };
+        let segment = job.schedule.rank;
+        for (begin, end) in job.schedule.first_sends() {
+            pump.queue(0, segment, begin, end);
+        }
+        pump
+    }
+
+    fn left_rank(&self) -> usize {
+        let schedule = &self.job.schedule;
+        (schedule.rank + schedule.world - 1) % schedule.world
+    }
+
+    fn right_rank(&self) -> usize {
+        (self.job.schedule.rank + 1) % self.job.schedule.world
+    }
+
+    /// Queues the chunk `begin..end` of `segment` for ring step `step`.
+    fn queue(&mut self, step: usize, segment: usize, begin: usize, end: usize) {
+        let header = LaneChunk {
+            operation: self.job.operation,
+            ring_step: step as u32,
+            segment: segment as u32,
+            offset: begin as u64,
+            value_bytes: self.job.encoding.chunk_bytes(begin, end) as u64,
+        };
+        self.outgoing.push_back(Outgoing {
+            header: framed(&header),
+            begin,
+            end,
+            encoded: None,
+            written: 0,
+        });
+    }
+
+    async fn run(mut self, values: &mut [f32]) -> Result<u64, CollectiveError> {
+        loop {
+            let wrote = self.write_some(values)?;
+            let read = self.read_some(values)?;
+            if self.outgoing.is_empty() && self.deliveries.peek().is_none() {
+                return Ok(self.bytes_sent);
+            }
+            if wrote || read {
+                self.last_progress = Instant::now();
+            } else {
+                self.wait().await?;
+            }
+        }
+    }
+
+    /// Waits until a socket is ready, the generation is abandoned, or the neighbours have
+    /// been silent for the whole timeout.
+    async fn wait(&mut self) -> Result<(), CollectiveError> {
+        let deadline = tokio::time::Instant::from_std(self.last_progress + self.job.timeout);
+        let writing = !self.outgoing.is_empty();
+        let reading = self.deliveries.peek().is_some();
+        let (left_rank, right_rank) = (self.left_rank(), self.right_rank());
+        let cancel = self.job.cancel;
+        tokio::select! {
+            ready = self.left.readable(), if reading => ready.map_err(|e| CollectiveError::InboundBroken {
+                rank: left_rank,
+                reason: e.to_string(),
+            }),
+            ready = self.right.writable(), if writing => ready.map_err(|_| CollectiveError::PeerGone { rank: right_rank }),
+            () = cancel.cancelled() => Err(CollectiveError::Cancelled),
+            () = tokio::time::sleep_until(deadline) => Err(CollectiveError::Timeout {
+                rank: if writing { right_rank } else { left_rank },
+                seconds: self.job.timeout.as_secs_f64(),
+            }),
+        }
+    }
+
+    /// Writes as much of the first queued chunk as the socket takes; whether anything went.
+    fn write_some(&mut self, values: &[f32]) -> Result<bool, CollectiveError> {
+        let right_rank = self.right_rank();
+        let encoding = self.job.encoding;
+        let Some(out) = self.outgoing.front_mut() else {
+            return Ok(false);
+        };
+        let header_len = out.header.len();
+        let result = if out.written < header_len {
+            self.right.try_write(&out.header[out.written..])
+        } else {
+            let at = out.written - header_len;
+            let range = &values[out.begin..out.end];
+            if encoding.is_plain(out.begin, out.end) {
+                self.right.try_write(&float_bytes(range)[at..])
+            } else {
+                let encoded = out
+                    .encoded
+                    .get_or_insert_with(|| encoding.encode(out.begin, range));
+                self.right.try_write(&encoded[at..])
+            }
+        };
+        match result {
+            Ok(sent) => {
+                out.written += sent;
+                let value_bytes = encoding.chunk_bytes(out.begin, out.end);
+                if out.written == header_len + value_bytes {
+                    self.bytes_sent += value_bytes as u64;
+                    self.outgoing.pop_front();
+                }
+                Ok(sent > 0)
+            }
+            Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => Ok(false),
+            Err(_) => Err(CollectiveError::PeerGone { rank: right_rank }),
+        }
+    }
+
+    /// Reads what the left neighbour sent, up to the end of the current header or chunk, and
+    /// takes in whatever it completes; whether anything came.
+    fn read_some(&mut self, values: &mut [f32]) -> Result<bool, CollectiveError> {
+        let left_rank = self.left_rank();
+        let broken = |reason: String| CollectiveError::InboundBroken {
+            rank: left_rank,
+            reason,
+        };
+        if self.deliveries.peek().is_none() {
+            return Ok(false);
+        }
+        let result = match &mut self.incoming {
+            Incoming::Header { raw, got } => self.left.try_read(&mut raw[*got..]),
+            Incoming::Values {
+                delivery,
+                bytes,
+                direct: true,
+                got,
+            } => self.left.try_read(
+                &mut float_bytes_mut(&mut values[delivery.begin..delivery.end])[*got..*bytes],
+            ),
+            Incoming::Values { bytes, got, .. } => {
+                self.staging.resize(*bytes, 0);
+                self.left.try_read(&mut self.staging[*got..])
+            }
+        };
+        let read = match result {
+            Ok(0) => return Err(broken("the connection closed".into())),
+            Ok(read) => read,
+            Err(e) if e.kind() == std::io::ErrorKind::WouldBlock => return Ok(false),
+            Err(e) => return Err(broken(e.to_string())),
+        };
+        self.advance(read, values)?;
+        Ok(true)
+    }
+
+    /// Counts `read` bytes into the current header or chunk and acts on whatever completed.
+    fn advance(&mut self, read: usize, values: &mut [f32]) -> Result<(), CollectiveError> {
+        match &mut self.incoming {
+            Incoming::Header { raw, got } => {
+                *got += read;
+                if *got < raw.len() {
+                    return Ok(());
+                }
+                if raw.len() == 4 {
+                    let length = u32::from_le_bytes([raw[0], raw[1], raw[2], raw[3]]) as usize;
+                    if length > MAX_HEADER_BYTES {
+                        return self.bad(format!("a {length}-byte chunk header"));
+                    }
+                    if length > 0 {
+                        self.incoming = Incoming::Header {
+                            raw: vec![0; 4 + length],
+                            got: 4,
+                        };
+                        return Ok(());
+                    }
+                }
+                let header = match LaneChunk::decode(&raw[4..]) {
+                    Ok(header) => header,
+                    Err(e) => return self.bad(format!("an unreadable chunk header: {e}")),
+                };
+                self.expect(&header)
+            }
+            Incoming::Values {
+                delivery,
+                bytes,
+                direct,
+                got,
+            } => {
+                *got += read;
+                if *got < *bytes {
+                    return Ok(());
+                }
+                let (delivery, direct) = (*delivery, *direct);
+                self.take_in(delivery, direct, values);
+                self.incoming = Incoming::Header {
+                    raw: vec![0; 4],
+                    got: 0,
+                };
+                Ok(())
+            }
+        }
+    }
+
+    /// Checks a chunk's header against the chunk the ring delivers next.
+    fn expect(&mut self, header: &LaneChunk) -> Result<(), CollectiveError> {
+        let Some(&delivery) = self.deliveries.peek() else {
+            return self.bad("a chunk after the all-reduce's last".into());
+        };
+        let bytes = self.job.encoding.chunk_bytes(delivery.begin, delivery.end);
+        if header.operation != self.job.operation
+            || header.ring_step as usize != delivery.step
+            || header.segment as usize != delivery.segment
+            || header.offset as usize != delivery.begin
+        {
+            return self.bad(format!(
+                "operation {} ring step {} segment {} offset {}, expected operation {} ring step {} segment {} offset {}",
+                header.operation,
+                header.ring_step,
+                header.segment,
+                header.offset,
+                self.job.operation,
+                delivery.step,
+                delivery.segment,
+                delivery.begin
+            ));
+        }
+        if header.value_bytes != bytes as u64 {
+            return self.bad(format!(
+                "{} bytes for segment {} at offset {}, expected {bytes} ({} values, {} on the wire)",
+                header.value_bytes,
+                delivery.segment,
+                delivery.begin,
+                delivery.end - delivery.begin,
+                self.job.encoding.wire.name()
+            ));
+        }
+        let direct = !self.job.schedule.adds(delivery.step)
+            && self.job.encoding.is_plain(delivery.begin, delivery.end);
+        self.incoming = Incoming::Values {
+            delivery,
+            bytes,
+            direct,
+            got: 0,
+        };
+        Ok(())
+    }
+
+    /// A received chunk into the buffer, and on around the ring when a step follows.
+    fn take_in(&mut self, delivery: Delivery, direct: bool, values: &mut [f32]) {
+        let schedule = self.job.schedule;
+        let encoding = self.job.encoding;
+        let target = &mut values[delivery.begin..delivery.end];
+        if !direct {
+            encoding.absorb(
+                delivery.begin,
+                target,
+                &self.staging,
+                schedule.adds(delivery.step),
+            );
+        }
+        if schedule.completes(delivery.step) {
+            // This rank owns the chunk now: what it keeps is what the others get.
+            encoding.round_owned(delivery.begin, target);
+        }
+        self.deliveries.next();
+        if delivery.step + 1 < schedule.steps() {
+            self.queue(
+                delivery.step + 1,
+                delivery.segment,
+                delivery.begin,
+                delivery.end,
+            );
+        }
+    }
+
+    fn bad<T>(&self, detail: String) -> Result<T, CollectiveError> {
+        Err(CollectiveError::BadChunk {
+            rank: self.left_rank(),
+            detail,
+        })
+    }
+}
+
+/// The bytes of `values` as they lie in memory (little-endian float32 on the hosts this runs
+/// on; [`Encoding::is_plain`] is false elsewhere).
+fn float_bytes(values: &[f32]) -> &[u8] {
+    // SAFETY: an f32 is 4 initialised bytes without padding, a u8 needs no alignment, and the
+    // slice covers exactly the values' memory for as long as `values` is borrowed.
+    unsafe { std::slice::from_raw_parts(values.as_ptr().cast::<u8>(), size_of_val(values)) }
+}
+
+/// The bytes of `values`, writable: every bit pattern written is some f32.
+fn float_bytes_mut(values: &mut [f32]) -> &mut [u8] {
+    // SAFETY: as in `float_bytes`, and any 4 bytes are a valid f32, so whatever is written
+    // through the byte view leaves valid values; the view borrows `values` mutably.
+    unsafe { std::slice::from_raw_parts_mut(values.as_mut_ptr().cast::<u8>(), size_of_val(values)) }
+}

@@ -1,0 +1,189 @@
+//! A ring on lanes: how it opens them and how an all-reduce shares the buffer among them.
+
+use std::time::{Duration, Instant};
+
+use tokio::net::TcpStream;
+use tokio::sync::mpsc;
+
+use super::lane::{DialError, Lane, LaneJob, dial};
+use super::{AdmittedLane, CollectiveError, Encoding, ReduceStats, Ring, Schedule};
+
+impl Ring {
+    /// Dials `hello.lanes` lanes to the right neighbour at `address` and waits for as many
+    /// from the left one, within the link's timeout.
+    pub(super) async fn open_lanes(
+        &self,
+        address: &str,
+        hello: proto::v1::LaneHello,
+        mut admitted: mpsc::Receiver<AdmittedLane>,
+    ) -> Result<Vec<Lane>, CollectiveError> {
+        let deadline = tokio::time::Instant::now() + self.timeout;
+        let count = hello.lanes as usize;
+        let mut right = Vec::with_capacity(count);
+        for lane in 0..hello.lanes {
+            let hello = proto::v1::LaneHello {
+                lane,
+                ..hello.clone()
+            };
+            right.push(self.dial_lane(address, &hello, deadline).await?);
+        }
+        let left_rank = (self.rank + self.world - 1) % self.world;
+        let mut left: Vec<Option<TcpStream>> = (0..count).map(|_| None).collect();
+        while left.iter().any(Option::is_none) {
+            let arrived = tokio::select! {
+                arrived = admitted.recv() => arrived.ok_or(CollectiveError::Cancelled)?,
+                () = self.cancel.cancelled() => return Err(CollectiveError::Cancelled),
+                () = tokio::time::sleep_until(deadline) => return Err(CollectiveError::Timeout {
+                    rank: left_rank,
+                    seconds: self.timeout.as_secs_f64(),
+                }),
+            };
+            if arrived.lanes as usize != count {
+                return Err(CollectiveError::BadChunk {
+                    rank: left_rank,
+                    detail: format!(
+                        "it opened lane {} of {}, where this ring has {count}",
+                        arrived.lane, arrived.lanes
+                    ),
+                });
+            }
+            left[arrived.lane as usize] = Some(arrived.stream);
+        }
+        right
+            .into_iter()
+            .zip(left.into_iter().flatten())
+            .map(|(right, left)| Lane::new(right, left))
+            .collect::<std::io::Result<Vec<Lane>>>()
+            .map_err(|e| CollectiveError::Aborted(format!("a lane's runtime: {e}")))
+    }
+
+    /// One lane to `address`, tried again while nothing answers, until `deadline`.
+    async fn dial_lane(
+        &self,
+        address: &str,
+        hello: &proto::v1::LaneHello,
+        deadline: tokio::time::Instant,
+    ) -> Result<TcpStream, CollectiveError> {
+        let right = (self.rank + 1) % self.world;
+        let failed = |reason: String| CollectiveError::Connect {
+            rank: right,
+            address: address.to_string(),
+            reason,
+        };
+        loop {
+            // The neighbour answers once it has joined the generation too, so the wait for
+            // the answer is bounded by the deadline and the generation's end.
+            let dialled = tokio::select! {
+                dialled = dial(address, hello) => dialled,
+                () = self.cancel.cancelled() => return Err(CollectiveError::Cancelled),
+                () = tokio::time::sleep_until(deadline) => {
+                    return Err(failed(format!("no answer within {:.0} s", self.timeout.as_secs_f64())));
+                }
+            };
+            match dialled {
+                Ok(stream) => return Ok(stream),
+                Err(DialError::Refused(reason)) => return Err(failed(reason)),
+                Err(DialError::Unreachable(reason)) if tokio::time::Instant::now() >= deadline => {
+                    return Err(failed(reason));
+                }
+                Err(DialError::Unreachable(_)) => {
+                    tokio::time::sleep(Duration::from_millis(100)).await;
+                }
+            }
+        }
+    }
+
+    /// Sums `values` across the ring on its lanes, each lane taking one range of the buffer
+    /// on a thread of its own; a lane that fails stops the others. Blocks the calling thread.
+    pub(super) fn reduce_on_lanes(
+        &mut self,
+        values: &mut [f32],
+        exact_tail: usize,
+    ) -> Result<ReduceStats, CollectiveError> {
+        let start = Instant::now();
+        let len = values.len();
+        let exact_from = len.saturating_sub(exact_tail);
+        let count = self.lanes.len();
+        let mut parts = Vec::with_capacity(count);
+        let (mut rest, mut offset) = (values, 0);
+        for lane in 0..count {
+            let end = (lane + 1) * len / count;
+            let (part, tail) = rest.split_at_mut(end - offset);
+            parts.push((offset, part));
+            (rest, offset) = (tail, end);
+        }
+        let stop = self.cancel.child_token();
+        let jobs: Vec<LaneJob<'_>> = parts
+            .iter()
+            .map(|(offset, part)| LaneJob {
+                schedule: Schedule {
+                    world: self.world,
+                    rank: self.rank,
+                    chunk_values: self.chunk_values,
+                    len: part.len(),
+                },
+                encoding: Encoding {
+                    wire: self.wire,
+                    exact_from: exact_from.saturating_sub(*offset),
+                },
+                operation: self.operation,
+                timeout: self.timeout,
+                cancel: &stop,
+            })
+            .collect();
+        let results: Vec<Result<u64, CollectiveError>> = std::thread::scope(|scope| {
+            let running: Vec<_> = self
+                .lanes
+                .iter_mut()
+                .zip(parts)
+                .zip(&jobs)
+                .map(|((lane, (_, part)), job)| {
+                    let stop = &stop;
+                    scope.spawn(move || {
+                        let result = lane.all_reduce(job, part);
+                        if result.is_err() {
+                            stop.cancel();
+                        }
+                        result
+                    })
+                })
+                .collect();
+            running
+                .into_iter()
+                .map(|thread| {
+                    thread
+                        .join()
+                        .unwrap_or_else(|_| Err(CollectiveError::Aborted("a lane panicked".into())))
+                })
+                .collect()
+        });
+        self.operation += 1;
+        first_failure(results, self.cancel.is_cancelled()).map(|bytes_sent| ReduceStats {
+            seconds: start.elapsed().as_secs_f64(),
+            bytes_sent,
+        })
+    }
+}
+
+/// The lanes' bytes sent, or the failure that stopped them: the first that is not the stop
+/// it caused in the other lanes (unless the generation itself was abandoned).
+fn first_failure(
+    results: Vec<Result<u64, CollectiveError>>,
+    abandoned: bool,
+) -> Result<u64, CollectiveError> {
+    let mut cancelled = false;
+    let mut bytes = 0;
+    let mut failure = None;
+    for result in results {
+        match result {
+            Ok(sent) => bytes += sent,
+            Err(CollectiveError::Cancelled) => cancelled = true,
+            Err(error) => failure = failure.or(Some(error)),
+        }
+    }
+    match failure {
+        Some(error) if !abandoned => Err(error),
+        _ if cancelled || abandoned => Err(CollectiveError::Cancelled),
+        _ => Ok(bytes),
+    }
+}
