@@ -223,6 +223,10 @@ fn summary(args: &PathBenchArgs, parameters: usize, steps: &[(f64, StepFigures)]
         let p = &f.phases;
         p.copy_s + p.local_reduce_s + p.ring_s + p.upload_s + p.checksum_s
     });
+    // A job checks every `auto` steps by default: the host path per step with the checksum
+    // spread over them.
+    let auto_every = settings::work::ChecksumEvery::Auto.steps(parameters);
+    let host_path_auto_s = host_path_s - checksum_s + checksum_s / auto_every as f64;
     let bytes = parameters as f64 * 4.0;
     let gb = |seconds: f64| bytes / 1e9 / seconds.max(1e-12);
     format!(
@@ -231,6 +235,7 @@ fn summary(args: &PathBenchArgs, parameters: usize, steps: &[(f64, StepFigures)]
          local_reduce_s={local_reduce_s:.4} ring_s={ring_s:.4} ring_algbw_gbs={:.3} \
          upload_s={upload_s:.4} upload_gbs={:.2} update_s={update_s:.4} \
          checksum_s={checksum_s:.4} checksum_gbs={:.2} host_path_s={host_path_s:.4} \
+         checksum_every_auto={auto_every} host_path_auto_s={host_path_auto_s:.4} \
          efficiency={:.4}",
         args.ring.peers.len(),
         args.model,

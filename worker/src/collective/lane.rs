@@ -45,28 +45,39 @@ pub(super) fn framed(message: &impl Message) -> Vec<u8> {
     framed
 }
 
+/// Why a lane's handshake message could not be read.
+#[derive(Debug, thiserror::Error)]
+pub(super) enum HandshakeError {
+    /// The connection failed or closed.
+    #[error("{0}")]
+    Io(#[from] std::io::Error),
+    /// The length prefix announced more than a handshake may hold.
+    #[error("a {length}-byte message, above the {limit} allowed")]
+    TooLong {
+        /// The announced length.
+        length: usize,
+        /// The most allowed.
+        limit: usize,
+    },
+    /// The bytes are not the message.
+    #[error("an unreadable message: {0}")]
+    Unreadable(#[from] prost::DecodeError),
+}
+
 /// Reads one length-prefixed message of at most `limit` bytes.
 pub(super) async fn read_framed<M: Message + Default>(
     stream: &mut TcpStream,
     limit: usize,
-) -> Result<M, String> {
+) -> Result<M, HandshakeError> {
     let mut length = [0u8; 4];
-    stream
-        .read_exact(&mut length)
-        .await
-        .map_err(|e| e.to_string())?;
+    stream.read_exact(&mut length).await?;
     let length = u32::from_le_bytes(length) as usize;
     if length > limit {
-        return Err(format!(
-            "a {length}-byte message, above the {limit} allowed"
-        ));
+        return Err(HandshakeError::TooLong { length, limit });
     }
     let mut body = vec![0u8; length];
-    stream
-        .read_exact(&mut body)
-        .await
-        .map_err(|e| e.to_string())?;
-    M::decode(body.as_slice()).map_err(|e| e.to_string())
+    stream.read_exact(&mut body).await?;
+    Ok(M::decode(body.as_slice())?)
 }
 
 /// Opens lane `hello.lane` to `address`: the magic, the hello, and the listener's answer.
@@ -86,7 +97,7 @@ pub(super) async fn dial(address: &str, hello: &LaneHello) -> Result<TcpStream, 
         .map_err(|e| DialError::Unreachable(e.to_string()))?;
     let answer: LaneAnswer = read_framed(&mut stream, MAX_HANDSHAKE_BYTES)
         .await
-        .map_err(DialError::Unreachable)?;
+        .map_err(|e| DialError::Unreachable(e.to_string()))?;
     if answer.refusal.is_empty() {
         Ok(stream)
     } else {
@@ -104,12 +115,9 @@ pub(super) enum DialError {
 }
 
 /// Reads a lane's hello, after its magic, from a connection the listener accepted.
-pub(super) async fn read_hello(stream: &mut TcpStream) -> Result<LaneHello, String> {
+pub(super) async fn read_hello(stream: &mut TcpStream) -> Result<LaneHello, HandshakeError> {
     let mut magic = [0u8; LANE_MAGIC.len()];
-    stream
-        .read_exact(&mut magic)
-        .await
-        .map_err(|e| e.to_string())?;
+    stream.read_exact(&mut magic).await?;
     read_framed(stream, MAX_HANDSHAKE_BYTES).await
 }
 

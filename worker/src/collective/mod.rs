@@ -177,7 +177,6 @@ impl Ring {
         link: &Link,
         cancel: CancellationToken,
     ) -> Result<Self, CollectiveError> {
-        let timeout = link.timeout;
         let world = peers.len().max(1);
         let mut ring = Self {
             rank,
@@ -187,7 +186,7 @@ impl Ring {
             outbound: None,
             inbox: None,
             cancel,
-            timeout,
+            timeout: link.timeout,
             chunk_values: CHUNK_VALUES,
             wire: WireFormat::F32,
             lanes: Vec::new(),
@@ -208,12 +207,25 @@ impl Ring {
                 lanes: link.lanes as u32,
             };
             ring.lanes = ring.open_lanes(address, hello, inboxes.lanes).await?;
-            return Ok(ring);
+        } else {
+            ring.inbox = Some(inboxes.chunks);
+            ring.outbound = Some(ring.open_stream(address, keys, link).await?);
         }
-        ring.inbox = Some(inboxes.chunks);
+        Ok(ring)
+    }
+
+    /// Opens the gRPC stream to the right neighbour at `address`, presenting `keys.own`;
+    /// returns where its chunks are queued.
+    async fn open_stream(
+        &self,
+        address: &str,
+        keys: &RingKeys,
+        link: &Link,
+    ) -> Result<mpsc::UnboundedSender<Chunk>, CollectiveError> {
+        let right = (self.rank + 1) % self.world;
         let failed = |reason: String| CollectiveError::Connect {
             rank: right,
-            address: address.clone(),
+            address: address.to_string(),
             reason,
         };
         let scheme = proto::tls::scheme(link.tls.is_some());
@@ -229,11 +241,11 @@ impl Ring {
             .initial_stream_window_size(Some(16 * 1024 * 1024))
             .initial_connection_window_size(Some(32 * 1024 * 1024))
             .connect_timeout(Duration::from_secs(2));
-        let deadline = Instant::now() + timeout;
+        let deadline = Instant::now() + self.timeout;
         // A right neighbour that died before the ring formed would hold this rank here for
         // the whole timeout; the coordinator's end of the generation releases it at once.
         let channel = loop {
-            if ring.cancel.is_cancelled() {
+            if self.cancel.is_cancelled() {
                 return Err(CollectiveError::Cancelled);
             }
             match endpoint.connect().await {
@@ -255,8 +267,7 @@ impl Ring {
                 tracing::warn!(peer = right, error = %status.message(), "collective stream ended");
             }
         });
-        ring.outbound = Some(sender);
-        Ok(ring)
+        Ok(sender)
     }
 
     /// Ranks in the ring.

@@ -375,7 +375,11 @@ impl LaneDesk {
                 Err(_) => return,
             };
         let admitted = self.check(&hello).await;
-        let refusal = admitted.as_ref().err().cloned().unwrap_or_default();
+        let refusal = admitted
+            .as_ref()
+            .err()
+            .map(ToString::to_string)
+            .unwrap_or_default();
         if !refusal.is_empty() {
             tracing::warn!(generation = hello.generation, %refusal, "a lane was refused");
         }
@@ -393,24 +397,47 @@ impl LaneDesk {
     }
 
     /// Whether `hello` may join this rank's ring, as the Push stream's checks decide.
-    async fn check(&self, hello: &proto::v1::LaneHello) -> Result<Doors, String> {
+    async fn check(&self, hello: &proto::v1::LaneHello) -> Result<Doors, LaneRefusal> {
         if self.tls {
-            return Err("this rank's ring runs over TLS, which lanes do not".into());
+            return Err(LaneRefusal::Tls);
         }
         if !proto::constant_time_equal(hello.token.as_bytes(), self.token.as_bytes()) {
-            return Err("wrong job token".into());
+            return Err(LaneRefusal::Token);
         }
         if hello.lanes == 0 || hello.lane >= hello.lanes || hello.lanes as usize > MAX_LANES {
-            return Err(format!(
-                "lane {} of {} (at most {MAX_LANES} lanes)",
-                hello.lane, hello.lanes
-            ));
+            return Err(LaneRefusal::NoSuchLane {
+                lane: hello.lane,
+                lanes: hello.lanes,
+            });
         }
         self.mailbox
             .admit(hello.generation, &hello.ring_secret)
             .await
-            .map_err(|status| status.message().to_string())
+            .map_err(|status| LaneRefusal::Ring(status.message().to_string()))
     }
+}
+
+/// Why a lane was not admitted (sent back as its answer's refusal).
+#[derive(Debug, thiserror::Error)]
+enum LaneRefusal {
+    /// This rank's ring runs over TLS.
+    #[error("this rank's ring runs over TLS, which lanes do not")]
+    Tls,
+    /// The hello's token is not the job's.
+    #[error("wrong job token")]
+    Token,
+    /// The lane's place is impossible.
+    #[error("lane {lane} of {lanes} (at most {MAX_LANES} lanes)")]
+    NoSuchLane {
+        /// Which lane it claimed to be.
+        lane: u32,
+        /// Of how many.
+        lanes: u32,
+    },
+    /// The ring's own admission refused it (stale generation, another rank's secret, or this
+    /// rank never joined its generation).
+    #[error("{0}")]
+    Ring(String),
 }
 
 /// Whether `stream` opens with [`super::lane::LANE_MAGIC`] (waiting for its first bytes at
