@@ -95,9 +95,9 @@ async fn lanes_sum_to_the_same_bits_as_the_grpc_stream() {
     ] {
         let on_lane = reduce(world, 1, chunk, len, wire).await;
         let on_stream = reduce(world, 0, chunk, len, wire).await;
-        for rank in 0..world {
+        for (rank, values) in on_lane.iter().enumerate() {
             assert_eq!(
-                bits(&on_lane[rank]),
+                bits(values),
                 bits(&on_stream[0]),
                 "{world} ranks, chunks of {chunk}, {len} values, {}: rank {rank}",
                 wire.name()
@@ -110,14 +110,14 @@ async fn lanes_sum_to_the_same_bits_as_the_grpc_stream() {
 async fn several_lanes_leave_every_rank_the_same_sum() {
     for (world, lanes, chunk, len) in [(2, 3, 37, 1003), (3, 2, 1000, 100_003), (3, 4, 7, 10)] {
         let results = reduce(world, lanes, chunk, len, WireFormat::F32).await;
-        for rank in 0..world {
+        for (rank, values) in results.iter().enumerate() {
             // Each lane cuts its own range into segments, so a value's owner (and with three
             // ranks or more its order of additions) differs from one lane's; every rank still
             // ends with the owner's bits.
             assert_eq!(
-                bits(&results[rank]),
+                bits(values),
                 bits(&results[0]),
-                "{world} ranks, {lanes} lanes"
+                "{world} ranks, {lanes} lanes: rank {rank}"
             );
         }
         for (i, value) in results[0].iter().enumerate() {
