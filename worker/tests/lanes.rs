@@ -193,3 +193,44 @@ async fn a_lane_needs_the_job_token_and_the_left_neighbours_secret() {
     let failed = joining.await.unwrap().err().unwrap().to_string();
     assert!(failed.contains("rank 1 at 127.0.0.1:1"), "{failed}");
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_chunk_header_that_disagrees_blames_the_left_neighbour() {
+    let servers = [serve().await, serve().await];
+    let peers: Vec<String> = servers.iter().map(|(a, _)| a.clone()).collect();
+    let mut tasks = Vec::new();
+    // Rank 1 sends bf16 where rank 0 expects float32: its headers announce half the bytes.
+    for (rank, (_, mailbox)) in servers.into_iter().enumerate() {
+        let peers = peers.clone();
+        tasks.push(tokio::spawn(async move {
+            let keys = keys(rank, 2);
+            let link = link(1);
+            let ring = Ring::connect(
+                &mailbox,
+                rank,
+                &peers,
+                5,
+                &keys,
+                &link,
+                CancellationToken::new(),
+            );
+            let wire = if rank == 0 {
+                WireFormat::F32
+            } else {
+                WireFormat::Bf16
+            };
+            let mut ring = ring.await.unwrap().with_wire(wire);
+            let mut values = gradient(rank, 1000);
+            ring.all_reduce(&mut values, 0).await
+        }));
+    }
+    let rank_0 = tasks.remove(0).await.unwrap();
+    match rank_0 {
+        Err(worker::collective::CollectiveError::BadChunk { rank, detail }) => {
+            assert_eq!(rank, 1, "{detail}");
+            assert!(detail.contains("bytes"), "{detail}");
+        }
+        other => panic!("rank 0 ended with {other:?}"),
+    }
+    let _ = tasks.remove(0).await;
+}

@@ -5,8 +5,10 @@
 //! Under autodiff it records one node that keeps only `q`, `k`, `v` and the bias; its backward
 //! pass recomputes the weights from them, one attention at a time, as flash attention's
 //! backward does. The forward pass is burn's attention op where that op computes what the
-//! backward pass assumes (burn-flex's tiled kernel on the CPU; cubecl's flash kernels for half
-//! inputs without a bias), else the weights in float32 and one product.
+//! backward pass assumes (burn-flex's tiled kernel on the CPU, libtorch's kernels), else the
+//! weights in float32 and one product ([`routes_to_burns_op`]). cubecl's devices never take
+//! burn's op: its tensor-core flash kernels round every input to f16 tiles, where bf16 values
+//! above 65504 become infinite, and its fallback takes the softmax in the inputs' type.
 
 use burn::backend::autodiff::checkpoint::base::Checkpointer;
 use burn::backend::autodiff::checkpoint::strategy::CheckpointStrategy;
@@ -40,14 +42,33 @@ pub trait SoftmaxAttention: Backend {
     ) -> FloatTensor<Self>;
 }
 
-/// What burn's attention op computes a float32 attention in on a backend.
+/// What burn's attention op computes an attention in on a backend.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 enum FusedKernel {
-    /// In float32 (burn-flex; libtorch, which keeps float32 inputs off its flash kernels).
+    /// Float32 inputs in float32 (burn-flex, which computes halves in float32 too; libtorch,
+    /// which keeps float32 inputs off its flash kernels).
     Float32,
     /// Possibly in f16 tiles: cubecl's tensor-core flash kernels take their tiles in f16
-    /// whatever the inputs' type, where autotune picks them.
+    /// whatever the inputs' type (bf16 and float32 included), where autotune picks them, and
+    /// its fallback takes the scores and the softmax in the inputs' type.
     HalfTiles,
+}
+
+/// Whether burn's attention op computes the forward pass of inputs of type `compute` on a
+/// backend whose fused kernel is `fused`, with or without a bias; else the float32 weights
+/// the backward pass recomputes, and one product.
+///
+/// - float32 only where the fused kernel stays in float32;
+/// - a half (`model.compute`) without a bias where the kernel keeps the inputs' range;
+///   never on cubecl's devices, whose f16 tiles would turn bf16 values above 65504 into
+///   infinities (and whose fallback would take the softmax in bf16);
+/// - a half with a bias nowhere: burn's unfused path would take the softmax in the half.
+fn routes_to_burns_op(compute: FloatDType, fused: FusedKernel, biased: bool) -> bool {
+    match (compute, fused) {
+        (FloatDType::F32, fused) => fused == FusedKernel::Float32,
+        (_, FusedKernel::HalfTiles) => false,
+        (_, FusedKernel::Float32) => !biased,
+    }
 }
 
 /// The concrete backends' forward pass ([`attention_forward`] with what their fused kernel
@@ -172,11 +193,8 @@ fn softmax_weights<B: Backend>(
 }
 
 /// The forward pass on `B`: burn's attention op where it computes what the backward pass
-/// assumes: float32 inputs on a backend whose fused kernel stays in float32, or half inputs
-/// (`model.compute`) without a bias, where half tiles are what the speed mode asks for. Else
-/// the float32 weights the backward pass recomputes, and one product in the inputs' type:
-/// float32 on cubecl devices, and half inputs with a bias, whose unfused path in burn would
-/// take the softmax in the half.
+/// assumes ([`routes_to_burns_op`]), else the float32 weights the backward pass recomputes,
+/// and one product in the inputs' type.
 fn attention_forward<B: Backend>(
     q: FloatTensor<B>,
     k: FloatTensor<B>,
@@ -185,11 +203,7 @@ fn attention_forward<B: Backend>(
     fused: FusedKernel,
 ) -> FloatTensor<B> {
     let compute = float_dtype::<B>(&q);
-    let burns_op = match compute {
-        FloatDType::F32 => fused == FusedKernel::Float32,
-        _ => bias.is_none(),
-    };
-    if burns_op {
+    if routes_to_burns_op(compute, fused, bias.is_some()) {
         return B::attention(q, k, v, None, bias, AttentionModuleOptions::default());
     }
     let scale = scale_of::<B>(&q);

@@ -137,3 +137,100 @@ fn a_fully_masked_row_gives_zeros_not_nan() {
         assert!(!has_nan, "d{name} has NaN");
     }
 }
+
+/// bf16 (`model.compute`) never reaches cubecl's attention kernels, whose f16 tiles would turn
+/// values above 65504 into infinities, with or without the segment bias; burn-flex's and
+/// libtorch's kernels keep the inputs' range and take it without a bias.
+#[test]
+fn bf16_never_routes_through_half_tiles() {
+    use super::{FusedKernel, routes_to_burns_op};
+    use burn::backend::FloatDType;
+    for biased in [false, true] {
+        assert!(!routes_to_burns_op(
+            FloatDType::BF16,
+            FusedKernel::HalfTiles,
+            biased
+        ));
+        assert!(!routes_to_burns_op(
+            FloatDType::F32,
+            FusedKernel::HalfTiles,
+            biased
+        ));
+        assert!(routes_to_burns_op(
+            FloatDType::F32,
+            FusedKernel::Float32,
+            biased
+        ));
+    }
+    assert!(routes_to_burns_op(
+        FloatDType::BF16,
+        FusedKernel::Float32,
+        false
+    ));
+    assert!(!routes_to_burns_op(
+        FloatDType::BF16,
+        FusedKernel::Float32,
+        true
+    ));
+}
+
+/// Scores far above f16's largest value (65504) on the Cube backend (wgpu; lavapipe on a host
+/// without a GPU), under the segment bias: the output and the gradients stay finite and equal
+/// burn-flex's op-by-op float32 reference. Every key shares one large component, so the scores
+/// are about 8.5e4 while their differences (what the softmax sees) stay near 1.
+#[test]
+fn scores_above_the_half_range_stay_finite_on_the_cube_backend() {
+    use crate::backend::{Backend, BackendDevices};
+    let (batch, heads, tokens) = (2, 2, 19);
+    let shape = [batch, heads, tokens, 8];
+    let flex = Device::flex().autodiff();
+    let normal = |std: f64| Tensor::<4>::random(shape, Distribution::Normal(0.0, std), &flex);
+    let shared = Tensor::<4>::full([batch, heads, 1, 8], 300.0, &flex).expand(shape);
+    let q = normal(1.0) + Tensor::<4>::full(shape, 100.0, &flex);
+    let k = shared + normal(0.03);
+    let (v, weights) = (normal(1.0), normal(1.0));
+    let largest_score: f32 = q
+        .clone()
+        .matmul(k.clone().swap_dims(2, 3))
+        .abs()
+        .max()
+        .into_scalar();
+    assert!(largest_score / 8f32.sqrt() > 65504.0, "{largest_score}");
+    let run =
+        |device: &Device,
+         attend: fn(Tensor<4>, Tensor<4>, Tensor<4>, Option<&Tensor<4>>) -> Tensor<4>| {
+            let on = |x: &Tensor<4>| Tensor::<4>::from_data(x.to_data(), device).require_grad();
+            let (q, k, v) = (on(&q), on(&k), on(&v));
+            let bias = runs_of_segments(batch, tokens, device);
+            let out = attend(q.clone(), k.clone(), v.clone(), Some(&bias));
+            let grads = (out.clone() * Tensor::from_data(weights.to_data(), device))
+                .sum()
+                .backward();
+            let grad = |x: &Tensor<4>| {
+                let grad = x.grad(&grads).expect("a gradient");
+                Tensor::<4>::from_data(grad.to_data(), &Device::flex())
+            };
+            [
+                Tensor::<4>::from_data(out.inner().to_data(), &Device::flex()),
+                grad(&q),
+                grad(&k),
+                grad(&v),
+            ]
+        };
+    let cube = Backend::Wgpu
+        .device()
+        .expect("a wgpu adapter (lavapipe where there is no GPU)")
+        .autodiff();
+    let actual = run(&cube, softmax_attention);
+    let expected = run(&flex, op_by_op_attention);
+    for (name, (actual, expected)) in ["out", "dq", "dk", "dv"]
+        .iter()
+        .zip(actual.into_iter().zip(expected))
+    {
+        let finite: bool = actual.clone().is_finite().all().into_scalar();
+        assert!(finite, "{name} is not finite on the Cube backend");
+        // Scores near 8.5e4 carry float32's rounding of about 0.008 into the softmax.
+        let error = relative_error(actual, expected);
+        assert!(error < 3e-2, "{name}: relative error {error:e}");
+    }
+}
