@@ -2,8 +2,12 @@
 //! benchmark configuration, and of the paper-scale model's construction and forward pass.
 //!
 //! `cargo bench -p trainer-core --bench model_step -- [--backend cpu|wgpu] [--steps N]
-//! [--batch B] [--shards S] [--skip-paper] [--skip-jax]`; shards default to the core count on
-//! the CPU backend and to 1 on the GPU backends.
+//! [--warmup N] [--batch B] [--shards S] [--skip-paper] [--skip-jax]`; shards default to the
+//! core count on the CPU backend and to 1 on the GPU backends. Warm-up steps (3 by default)
+//! come first: fusion builds and autotunes its kernels on the steps after the first. On
+//! cubecl's devices one more step times its kernels on the device (`kernel_device_s`, their
+//! sum; `kernel_span_s`, first start to last end) beside its wall time (`profiled_step_s`):
+//! device time well under the step's says the host is the limit.
 //! Prints its configuration, then one `key=value` line.
 //!
 //! In the same run it times the JAX peer (`tools/reference/xfactor_reference.py bench`: the
@@ -20,7 +24,7 @@ use data::rng::Stream;
 use settings::model::Precision;
 use trainer_core::allocator;
 use trainer_core::backend::{
-    Backend, BackendDevices, MemoryFigures, count_kernels, default_shards,
+    Backend, BackendDevices, MemoryFigures, count_kernels, default_shards, time_kernels,
 };
 use trainer_core::model::PoseLatents;
 use trainer_core::sharded::sharded_gradients;
@@ -32,6 +36,8 @@ struct Options {
     /// (`trainer_core::backend::default_shards`).
     shards: usize,
     steps: usize,
+    /// Steps run before the timed ones.
+    warmup: usize,
     batch: usize,
     paper: bool,
     jax: bool,
@@ -53,6 +59,7 @@ fn parse_options() -> Options {
         backend: Backend::Cpu,
         shards: 0,
         steps: 5,
+        warmup: 3,
         batch: 8,
         paper: true,
         jax: true,
@@ -77,6 +84,12 @@ fn parse_options() -> Options {
             }
             "--steps" => {
                 options.steps = args.next().and_then(|v| v.parse().ok()).expect("--steps N")
+            }
+            "--warmup" => {
+                options.warmup = args
+                    .next()
+                    .and_then(|v| v.parse().ok())
+                    .expect("--warmup N")
             }
             "--batch" => {
                 options.batch = args.next().and_then(|v| v.parse().ok()).expect("--batch B")
@@ -378,7 +391,10 @@ fn main() {
     let pair = uniform([options.batch, 2, side, side, 3], 1, &device);
     let mask = two_quadrant_mask(options.batch, config.grid_side(), &device);
 
-    let warmup = stage1_step(&model, &pair, &mask, options.shards);
+    let warmups: Vec<f64> = (0..options.warmup.max(1))
+        .map(|_| stage1_step(&model, &pair, &mask, options.shards))
+        .collect();
+    let (warmup, warmup_last) = (warmups[0], warmups[warmups.len() - 1]);
     let (counted, kernels) = count_kernels(|| stage1_step(&model, &pair, &mask, options.shards));
     let mut steps: Vec<f64> = std::iter::once(counted)
         .chain((1..options.steps).map(|_| stage1_step(&model, &pair, &mask, options.shards)))
@@ -387,7 +403,7 @@ fn main() {
     let step_s = steps[steps.len() / 2];
     let (param_bytes, optimizer_bytes) = training_bytes(model.num_params());
     let mut line = format!(
-        "backend={} model={} precision={} compute={} batch={} shards={} params={} param_bytes={param_bytes} optimizer_bytes={optimizer_bytes} warmup_step_s={warmup:.3} step_s={step_s:.3} min_step_s={:.3} pairs_per_s={:.2} checkpointing={}",
+        "backend={} model={} precision={} compute={} batch={} shards={} params={} param_bytes={param_bytes} optimizer_bytes={optimizer_bytes} warmup_steps={} warmup_step_s={warmup:.3} warmup_last_step_s={warmup_last:.3} step_s={step_s:.3} min_step_s={:.3} pairs_per_s={:.2} checkpointing={}",
         options.backend.name(),
         options.model,
         precision.name(),
@@ -395,6 +411,7 @@ fn main() {
         options.batch,
         options.shards,
         model.num_params(),
+        warmups.len(),
         steps[0],
         options.batch as f64 / step_s,
         if options.checkpointing { "on" } else { "off" }
@@ -406,6 +423,16 @@ fn main() {
             kernels.total(),
             kernels.kinds.len(),
             kernels.top(6)
+        ));
+        // One more step with every kernel timed on the device: where the step's time went.
+        let (profiled, time) = time_kernels(|| stage1_step(&model, &pair, &mask, options.shards));
+        line.push_str(&format!(
+            " profiled_step_s={profiled:.3} kernel_device_s={:.3} kernel_span_s={:.3} kernels_timed={} kernel_timing={} device_share={:.2}",
+            time.device_s,
+            time.span_s,
+            time.timed,
+            time.method(),
+            time.device_s / profiled.max(1e-9)
         ));
     }
     // After the steps, before the paper model is built: what this step's model and batch hold

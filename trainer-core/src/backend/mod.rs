@@ -3,6 +3,7 @@
 //! an error that names the feature, never a panic inside burn.
 
 mod host;
+mod kernel_time;
 mod kernels;
 mod memory;
 
@@ -10,6 +11,7 @@ use burn::tensor::{Device, DeviceKind};
 pub use host::{
     Adapter, AdapterKind, CudaUnavailable, HostDevices, cuda_device_count, wgpu_adapters,
 };
+pub use kernel_time::{KernelTime, time_kernels};
 pub use kernels::{KernelCounts, count_kernels};
 pub use memory::MemoryFigures;
 pub use settings::Backend;
