@@ -418,22 +418,9 @@ fn main() {
     );
     // Launches of cubecl's runtimes in one step (none on the CPU backend and libtorch).
     if kernels.total() > 0 {
-        line.push_str(&format!(
-            " kernels_per_step={} kernel_kinds={} top_kernels={}",
-            kernels.total(),
-            kernels.kinds.len(),
-            kernels.top(6)
-        ));
-        // One more step with every kernel timed on the device: where the step's time went.
-        let (profiled, time) = time_kernels(|| stage1_step(&model, &pair, &mask, options.shards));
-        line.push_str(&format!(
-            " profiled_step_s={profiled:.3} kernel_device_s={:.3} kernel_span_s={:.3} kernels_timed={} kernel_timing={} device_share={:.2}",
-            time.device_s,
-            time.span_s,
-            time.timed,
-            time.method(),
-            time.device_s / profiled.max(1e-9)
-        ));
+        line.push_str(&kernel_figures(&kernels, || {
+            stage1_step(&model, &pair, &mask, options.shards)
+        }));
     }
     // After the steps, before the paper model is built: what this step's model and batch hold
     // (the pools keep the pages they reserved, so theirs is the step's high-water mark).
@@ -445,4 +432,24 @@ fn main() {
         line.push_str(&paper_figures(&inference));
     }
     println!("{line}");
+}
+
+/// The kernels of one step (`kernels`), then one more step (`step`, returning its seconds)
+/// with every kernel timed on the device, as `key=value` figures.
+fn kernel_figures(
+    kernels: &trainer_core::backend::KernelCounts,
+    step: impl FnOnce() -> f64,
+) -> String {
+    let (profiled, time) = time_kernels(step);
+    format!(
+        " kernels_per_step={} kernel_kinds={} top_kernels={} profiled_step_s={profiled:.3} kernel_device_s={:.3} kernel_span_s={:.3} kernels_timed={} kernel_timing={} device_share={:.2}",
+        kernels.total(),
+        kernels.kinds.len(),
+        kernels.top(6),
+        time.device_s,
+        time.span_s,
+        time.timed,
+        time.method(),
+        time.device_s / profiled.max(1e-9)
+    )
 }
