@@ -205,8 +205,9 @@ struct Outgoing {
     header: Vec<u8>,
     begin: usize,
     end: usize,
-    /// The values as the wire carries them when that is not float32 (bf16), made once.
-    encoded: Option<bytes::Bytes>,
+    /// Whether the pump's encoding buffer holds this chunk's values as the wire carries them,
+    /// when that is not float32 (bf16); made once, when the chunk is first at the front.
+    encoded: bool,
     written: usize,
 }
 
@@ -233,6 +234,8 @@ struct Pump<'a, 'j> {
     deliveries: std::iter::Peekable<Box<dyn Iterator<Item = Delivery>>>,
     incoming: Incoming,
     staging: Vec<u8>,
+    /// The front chunk's values as the wire carries them (bf16), reused chunk after chunk.
+    encoded: Vec<u8>,
     bytes_sent: u64,
     last_progress: Instant,
 }
@@ -251,6 +254,7 @@ impl<'a, 'j> Pump<'a, 'j> {
                 got: 0,
             },
             staging: Vec::new(),
+            encoded: Vec::new(),
             bytes_sent: 0,
             last_progress: Instant::now(),
         };
@@ -283,7 +287,7 @@ impl<'a, 'j> Pump<'a, 'j> {
             header: framed(&header),
             begin,
             end,
-            encoded: None,
+            encoded: false,
             written: 0,
         });
     }
@@ -341,10 +345,11 @@ impl<'a, 'j> Pump<'a, 'j> {
             if encoding.is_plain(out.begin, out.end) {
                 self.right.try_write(&float_bytes(range)[at..])
             } else {
-                let encoded = out
-                    .encoded
-                    .get_or_insert_with(|| encoding.encode(out.begin, range));
-                self.right.try_write(&encoded[at..])
+                if !out.encoded {
+                    encoding.encode_into(out.begin, range, &mut self.encoded);
+                    out.encoded = true;
+                }
+                self.right.try_write(&self.encoded[at..])
             }
         };
         match result {

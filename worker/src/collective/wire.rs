@@ -49,18 +49,27 @@ impl Encoding {
     /// are copied as they lie in memory (one `memcpy` on a little-endian host), bf16 ones
     /// rounded into place.
     pub(super) fn encode(&self, begin: usize, values: &[f32]) -> Bytes {
-        let wired = self.wire_values(begin, begin + values.len());
-        let mut bytes = Vec::with_capacity(self.chunk_bytes(begin, begin + values.len()));
-        match self.wire {
-            WireFormat::F32 => extend_f32(&mut bytes, &values[..wired]),
-            WireFormat::Bf16 => bytes.extend(
-                values[..wired]
-                    .iter()
-                    .flat_map(|value| to_bf16(*value).to_le_bytes()),
-            ),
-        }
-        extend_f32(&mut bytes, &values[wired..]);
+        let mut bytes = Vec::new();
+        self.encode_into(begin, values, &mut bytes);
         Bytes::from(bytes)
+    }
+
+    /// [`Encoding::encode`] into `bytes`, which it replaces (a lane reuses one buffer).
+    pub(super) fn encode_into(&self, begin: usize, values: &[f32], bytes: &mut Vec<u8>) {
+        let wired = self.wire_values(begin, begin + values.len());
+        bytes.clear();
+        bytes.reserve(self.chunk_bytes(begin, begin + values.len()));
+        match self.wire {
+            WireFormat::F32 => extend_f32(bytes, &values[..wired]),
+            WireFormat::Bf16 => {
+                bytes.resize(wired * 2, 0);
+                bytes
+                    .chunks_exact_mut(2)
+                    .zip(&values[..wired])
+                    .for_each(|(slot, value)| slot.copy_from_slice(&to_bf16(*value).to_le_bytes()));
+            }
+        }
+        extend_f32(bytes, &values[wired..]);
     }
 
     /// `target += chunk` (reduce-scatter) or `target = chunk` (all-gather), where `target` is
