@@ -60,7 +60,8 @@ fn join_and_serve(
             .map(WorkerTls::peers)
             .transpose()?
             .flatten(),
-        lanes: crate::collective::DEFAULT_LANES,
+        // Each generation's ring takes its lanes from its assignment (`join_ring`).
+        lanes: 0,
     };
     let collective = CollectiveService::default();
     let mailbox = collective.mailbox();

@@ -37,9 +37,6 @@ pub use wire::WireFormat;
 /// pipeline.
 pub const CHUNK_VALUES: usize = 256 * 1024;
 
-/// Lanes of a ring unless the assignment says otherwise.
-pub const DEFAULT_LANES: usize = 1;
-
 /// What went wrong in a collective. The caller's buffer may be partly reduced and must be
 /// discarded; the model was not touched.
 #[derive(Debug, Clone, thiserror::Error)]
