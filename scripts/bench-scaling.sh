@@ -117,6 +117,15 @@ busiest_core() {
 
 field() { tr ' ' '\n' <<<"$1" | sed -n "s/^$2=//p"; }
 
+# Rank 0's split of its step outside the compute and the ring, as key=value pairs.
+rank_phases() {
+    local key out=""
+    for key in copy_s local_reduce_s upload_s update_s checksum_s; do
+        out="$out${out:+ }rank0_$key=$(field "$1" "$key")"
+    done
+    echo "$out"
+}
+
 # One cell: N ranks, link L Gbit/s, wire W. Prints the cell's line.
 cell() {
     local n=$1 link=$2 wire=$3
@@ -138,14 +147,14 @@ cell() {
     line=$(grep '^bench=data_path' "$SCRATCH/rank-0.out")
     awk -v line="$line" -v n="$n" -v link="$link" -v wire="$wire" -v busy="$busy" \
         -v sim="$SIM_MBIT" -v delay="$DELAY_US" -v compute="$COMPUTE_S" -v values="$PAPER_VALUES" \
-        -v step="$(field "$line" step_s)" -v ring="$(field "$line" ring_s)" 'BEGIN {
+        -v step="$(field "$line" step_s)" -v ring="$(field "$line" ring_s)" -v phases="$(rank_phases "$line")" 'BEGIN {
         width = (wire == "bf16") ? 2 : 4
         bytes = values * width
         model_ring = 2 * (n - 1) / n * bytes / (0.9 * link * 1e9 / 8) + 2 * (n - 1) * delay * 1e-6
         model = compute / (compute + model_ring)
         measured = compute / step
         refused = (busy > 0.9) ? "core_saturated" : "no"
-        printf "bench=scaling ranks=%d link_gbit=%d wire=%s shaped_mbit=%d delay_us=%d payload_real_gb=%.3f step_s=%.4f ring_s=%.4f efficiency=%.4f model_ring_s=%.4f model_efficiency=%.4f deviation=%.4f busiest_core=%s refused=%s\n", n, link, wire, sim, delay, bytes / 1e9, step, ring, measured, model_ring, model, (measured - model) / model, busy, refused
+        printf "bench=scaling ranks=%d link_gbit=%d wire=%s shaped_mbit=%d delay_us=%d payload_real_gb=%.3f step_s=%.4f ring_s=%.4f efficiency=%.4f model_ring_s=%.4f model_efficiency=%.4f deviation=%.4f busiest_core=%s refused=%s %s\n", n, link, wire, sim, delay, bytes / 1e9, step, ring, measured, model_ring, model, (measured - model) / model, busy, refused, phases
     }'
 }
 

@@ -7,13 +7,17 @@
 
 use std::collections::HashMap;
 
-use burn::module::{Module, ModuleMapper, ModuleVisitor, Param, ParamId};
+use burn::module::{Module, ModuleVisitor, Param, ParamId};
 use burn::optim::GradientsParams;
 use burn::tensor::Tensor;
 
 use settings::optim::AdamWConfig;
 
 use crate::flax::{FlaxError, FlaxTensors, HostTensor, flax_name};
+
+mod buckets;
+
+use buckets::{BUCKET_VALUES, Flat, Gather, Layout, Member, Place, Scatter, concat};
 
 /// Whether the parameter with this flax name is weight-decayed: every parameter except
 /// LayerNorm, RMSNorm and LayerScale parameters, biases and `global_embed`.
@@ -36,18 +40,25 @@ pub struct UpdateReport {
     pub applied: bool,
 }
 
+/// The first and second moments of a bucket's (or one imported parameter's) values, flat.
 #[derive(Debug, Clone)]
 struct Moments {
     first: Tensor<1>,
     second: Tensor<1>,
 }
 
-/// AdamW state: the update count and both moments of every parameter.
+/// AdamW state: the update count and both moments of every parameter, packed in the buckets
+/// of [`buckets::Layout`].
 #[derive(Debug, Clone)]
 pub struct AdamW {
     config: AdamWConfig,
     updates: u64,
-    moments: HashMap<ParamId, Moments>,
+    layout: Layout,
+    /// One per bucket of `layout`.
+    moments: Vec<Moments>,
+    /// Moments of parameters not in `layout` (imported from a checkpoint), packed at the
+    /// next update.
+    loose: HashMap<ParamId, Moments>,
 }
 
 impl AdamW {
@@ -56,7 +67,9 @@ impl AdamW {
         Self {
             config,
             updates: 0,
-            moments: HashMap::new(),
+            layout: Layout::default(),
+            moments: Vec::new(),
+            loose: HashMap::new(),
         }
     }
 
@@ -92,21 +105,95 @@ impl AdamW {
             _ => 1.0,
         };
         self.updates += 1;
-        let mut update = Update {
-            optimizer: self,
-            grads,
-            lr,
-            clip_scale,
-            path: Vec::new(),
+        let mut gather = Gather::new(grads);
+        model.visit(&mut gather);
+        let members: Vec<(Member, bool)> = gather
+            .flats
+            .iter()
+            .map(|flat| (flat.member, flat.decayed))
+            .collect();
+        let layout = Layout::plan(&members, BUCKET_VALUES);
+        if layout != self.layout {
+            self.repack(layout, &gather.flats);
+        }
+        let updated = self.update_buckets(gather.flats, lr, clip_scale);
+        let mut scatter = Scatter {
+            updated,
+            places: self.layout.places(),
         };
-        let model = model.map(&mut update);
         (
-            model,
+            model.map(&mut scatter),
             UpdateReport {
                 grad_norm,
                 applied: true,
             },
         )
+    }
+
+    /// Every bucket's new values (`flats`: its members), each element through the
+    /// per-parameter AdamW arithmetic.
+    fn update_buckets(&mut self, flats: Vec<Flat>, lr: f64, clip_scale: f64) -> Vec<Tensor<1>> {
+        let mut flats: HashMap<ParamId, Flat> = flats
+            .into_iter()
+            .map(|flat| (flat.member.id, flat))
+            .collect();
+        let config = &self.config;
+        let t = self.updates as i32;
+        let (beta1, beta2, epsilon) = (config.beta1, config.beta2, config.epsilon);
+        let mut updated = Vec::with_capacity(self.layout.buckets.len());
+        for (bucket, state) in self.layout.buckets.iter().zip(&mut self.moments) {
+            let (values, grads): (Vec<_>, Vec<_>) = bucket
+                .members
+                .iter()
+                .filter_map(|member| flats.remove(&member.id))
+                .map(|flat| (flat.value, flat.grad))
+                .unzip();
+            let value = concat(values);
+            let grad = concat(grads) * clip_scale;
+            state.first = state.first.clone() * beta1 + grad.clone() * (1.0 - beta1);
+            state.second = state.second.clone() * beta2 + grad.square() * (1.0 - beta2);
+            let first_hat = state.first.clone() / (1.0 - beta1.powi(t));
+            let second_hat = state.second.clone() / (1.0 - beta2.powi(t));
+            let mut step = first_hat / (second_hat.sqrt() + epsilon);
+            if bucket.decayed && config.weight_decay != 0.0 {
+                step = step + value.clone() * config.weight_decay;
+            }
+            updated.push(value - step * lr);
+        }
+        updated
+    }
+
+    /// Moves every moment into the buckets of `layout` (`flats`: its members): from
+    /// the old buckets, from imported moments, or zeros for a parameter never updated. A
+    /// parameter that left the buckets keeps its moments aside.
+    fn repack(&mut self, layout: Layout, flats: &[Flat]) {
+        let old_places = self.layout.places();
+        let mut held: HashMap<ParamId, Moments> = old_places
+            .keys()
+            .filter_map(|&id| Some((id, self.moments_of(id, &old_places)?)))
+            .collect();
+        held.extend(self.loose.drain());
+        let flats: HashMap<ParamId, &Flat> =
+            flats.iter().map(|flat| (flat.member.id, flat)).collect();
+        let mut packed = Vec::with_capacity(layout.buckets.len());
+        for bucket in &layout.buckets {
+            let (firsts, seconds): (Vec<_>, Vec<_>) = bucket
+                .members
+                .iter()
+                .filter_map(|member| flats.get(&member.id))
+                .map(|flat| match held.remove(&flat.member.id) {
+                    Some(moments) => (moments.first, moments.second),
+                    None => (flat.value.zeros_like(), flat.value.zeros_like()),
+                })
+                .unzip();
+            packed.push(Moments {
+                first: concat(firsts),
+                second: concat(seconds),
+            });
+        }
+        self.moments = packed;
+        self.loose = held;
+        self.layout = layout;
     }
 }
 
@@ -117,10 +204,11 @@ impl AdamW {
         let mut names = ParamNames::default();
         model.visit(&mut names);
         let mut out = Vec::new();
+        let places = self.layout.places();
         for (id, name, shape) in names.params {
-            if let Some(state) = self.moments.get(&id) {
-                for (prefix, tensor) in [("first", &state.first), ("second", &state.second)] {
-                    let mut host = HostTensor::from_tensor(tensor.clone());
+            if let Some(state) = self.moments_of(id, &places) {
+                for (prefix, tensor) in [("first", state.first), ("second", state.second)] {
+                    let mut host = HostTensor::from_tensor(tensor);
                     host.shape = shape.clone();
                     out.push((format!("{prefix}.{name}"), host));
                 }
@@ -140,7 +228,9 @@ impl AdamW {
         let mut names = ParamNames::default();
         model.visit(&mut names);
         let device = names.device.unwrap_or_default();
+        self.layout = Layout::default();
         self.moments.clear();
+        self.loose.clear();
         self.updates = updates;
         if updates == 0 {
             return Ok(());
@@ -156,9 +246,22 @@ impl AdamW {
             };
             let first = fetch("first")?;
             let second = fetch("second")?;
-            self.moments.insert(id, Moments { first, second });
+            self.loose.insert(id, Moments { first, second });
         }
         Ok(())
+    }
+
+    /// The moments of parameter `id`, flat, wherever they are held (`places`: the layout's).
+    fn moments_of(&self, id: ParamId, places: &HashMap<ParamId, Place>) -> Option<Moments> {
+        let Some(place) = places.get(&id) else {
+            return self.loose.get(&id).cloned();
+        };
+        let bucket = self.moments.get(place.bucket)?;
+        let slice = |tensor: &Tensor<1>| tensor.clone().narrow(0, place.offset, place.len);
+        Some(Moments {
+            first: slice(&bucket.first),
+            second: slice(&bucket.second),
+        })
     }
 }
 
@@ -217,79 +320,6 @@ pub fn global_norm<M: Module>(model: &M, grads: &GradientsParams) -> f64 {
         .map_or(0.0, |total| total.into_scalar::<f64>().sqrt())
 }
 
-struct Update<'a> {
-    optimizer: &'a mut AdamW,
-    grads: &'a GradientsParams,
-    lr: f64,
-    clip_scale: f64,
-    path: Vec<String>,
-}
-
-impl ModuleMapper for Update<'_> {
-    fn enter_module(&mut self, name: &str, _container_type: &str) {
-        self.path.push(name.to_string());
-    }
-
-    fn exit_module(&mut self, _name: &str, _container_type: &str) {
-        self.path.pop();
-    }
-
-    fn map_float<const D: usize>(&mut self, param: Param<Tensor<D>>) -> Param<Tensor<D>> {
-        let Some(grad) = self.grads.get::<D>(param.id) else {
-            return param;
-        };
-        let config = &self.optimizer.config;
-        let decay = if is_decayed(&flax_name(&self.path)) {
-            config.weight_decay
-        } else {
-            0.0
-        };
-        let t = self.optimizer.updates as i32;
-        let (beta1, beta2) = (config.beta1, config.beta2);
-        let (epsilon, lr, clip_scale) = (config.epsilon, self.lr, self.clip_scale);
-        let id = param.id;
-        let moments = &mut self.optimizer.moments;
-        param.map(|tensor| {
-            let requires_grad = tensor.is_require_grad();
-            let tracked = tensor.is_autodiff();
-            // The device's gradient checkpointing rides on each tracked tensor; the updated
-            // parameter must carry it on, or the next step mixes strategies.
-            let strategy = if tracked {
-                tensor.gradient_checkpointing_strategy()
-            } else {
-                None
-            };
-            let shape = tensor.dims();
-            let count = shape.iter().product::<usize>();
-            let value = if tracked { tensor.inner() } else { tensor }.reshape([count]);
-            let grad = grad.reshape([count]) * clip_scale;
-            let state = moments.entry(id).or_insert_with(|| Moments {
-                first: value.zeros_like(),
-                second: value.zeros_like(),
-            });
-            state.first = state.first.clone() * beta1 + grad.clone() * (1.0 - beta1);
-            state.second = state.second.clone() * beta2 + grad.square() * (1.0 - beta2);
-            let first_hat = state.first.clone() / (1.0 - beta1.powi(t));
-            let second_hat = state.second.clone() / (1.0 - beta2.powi(t));
-            let mut step = first_hat / (second_hat.sqrt() + epsilon);
-            if decay != 0.0 {
-                step = step + value.clone() * decay;
-            }
-            let updated = (value - step * lr).reshape(shape);
-            if tracked {
-                let tracked = Tensor::from_inner(updated);
-                let tracked = match strategy {
-                    Some(strategy) => tracked.with_gradient_checkpointing_strategy(strategy),
-                    None => tracked,
-                };
-                tracked.set_require_grad(requires_grad)
-            } else {
-                updated
-            }
-        })
-    }
-}
-
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -342,6 +372,8 @@ mod tests {
     struct Probe {
         dense_0: Dense,
         out_norm: LayerNorm,
+        /// After the norm, so the decayed kernels are not neighbours in module order.
+        dense_1: Dense,
     }
 
     fn probe(device: &Device) -> Probe {
@@ -349,6 +381,7 @@ mod tests {
         Probe {
             dense_0: Dense::new(&mut init, 2, 2, true),
             out_norm: LayerNorm::new(&mut init, 2, true),
+            dense_1: Dense::new(&mut init, 2, 2, true),
         }
     }
 
@@ -363,6 +396,116 @@ mod tests {
         let loss =
             (model.dense_0.kernel.val() * c2).sum() + (model.out_norm.scale.val() * c1).sum();
         GradientsParams::from_grads(loss.backward(), model)
+    }
+
+    /// Loss `sum(p * w)` over every parameter with fixed, uneven weights `w`, so each
+    /// gradient is its `w`, different per element and per step.
+    fn uneven_gradients(model: &Probe, step: u32, device: &Device) -> GradientsParams {
+        let weight = |len: usize, salt: u32| -> Vec<f32> {
+            (0..len)
+                .map(|i| ((i as f32 + 1.3) * (salt as f32 + 0.7) * (step as f32 + 1.1)).sin())
+                .collect()
+        };
+        let kernel = Tensor::<2>::from_data(TensorData::new(weight(4, 1), [2, 2]), device);
+        let bias = Tensor::<1>::from_data(TensorData::new(weight(2, 2), [2]), device);
+        let scale = Tensor::<1>::from_data(TensorData::new(weight(2, 3), [2]), device);
+        let shift = Tensor::<1>::from_data(TensorData::new(weight(2, 4), [2]), device);
+        let last = Tensor::<2>::from_data(TensorData::new(weight(4, 5), [2, 2]), device);
+        let [dense_bias, norm_bias, last_bias] = [
+            &model.dense_0.bias,
+            &model.out_norm.bias,
+            &model.dense_1.bias,
+        ]
+        .map(|bias| bias.as_ref().map(|b| b.val()).unwrap());
+        let loss = (model.dense_0.kernel.val() * kernel).sum()
+            + (dense_bias * bias.clone()).sum()
+            + (model.out_norm.scale.val() * scale).sum()
+            + (norm_bias * shift).sum()
+            + (model.dense_1.kernel.val() * last).sum()
+            + (last_bias * bias).sum();
+        GradientsParams::from_grads(loss.backward(), model)
+    }
+
+    /// Every float parameter's values, in module order.
+    fn values(model: &Probe) -> Vec<Vec<f32>> {
+        struct Values(Vec<Vec<f32>>);
+        impl ModuleVisitor for Values {
+            fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
+                self.0.push(param.val().try_into_vec_as::<f32>().unwrap());
+            }
+        }
+        let mut out = Values(Vec::new());
+        model.visit(&mut out);
+        out.0
+    }
+
+    #[test]
+    fn buckets_update_bitwise_as_each_parameter_alone() {
+        let device = Device::flex().autodiff();
+        // No clipping: alone, a parameter's norm would be its own.
+        let config = AdamWConfig {
+            clip_norm: None,
+            skip_norm_above: None,
+            ..AdamWConfig::default()
+        };
+        let mut packed_model = probe(&device);
+        let mut alone_model = packed_model.clone();
+        let mut packed = AdamW::new(config.clone());
+        let mut alone: HashMap<ParamId, AdamW> = HashMap::new();
+        for step in 0..3 {
+            let grads = uneven_gradients(&packed_model, step, &device);
+            (packed_model, _) = packed.step(packed_model, &grads, 0.01);
+            assert_eq!(packed.layout.buckets.len(), 2, "the kernels; the rest");
+            let mut grads = uneven_gradients(&alone_model, step, &device);
+            let kernels = [&alone_model.dense_0, &alone_model.dense_1].map(|dense| dense.kernel.id);
+            let biases = [
+                &alone_model.dense_0.bias,
+                &alone_model.out_norm.bias,
+                &alone_model.dense_1.bias,
+            ]
+            .map(|bias| bias.as_ref().unwrap().id);
+            let vectors = biases.into_iter().chain([alone_model.out_norm.scale.id]);
+            for id in kernels.into_iter().chain(vectors) {
+                let mut one = GradientsParams::new();
+                if kernels.contains(&id) {
+                    one.register(id, grads.remove::<2>(id).unwrap());
+                } else {
+                    one.register(id, grads.remove::<1>(id).unwrap());
+                }
+                let optimizer = alone
+                    .entry(id)
+                    .or_insert_with(|| AdamW::new(config.clone()));
+                (alone_model, _) = optimizer.step(alone_model, &one, 0.01);
+            }
+        }
+        let bits = |model: &Probe| -> Vec<Vec<u32>> {
+            let to_bits = |values: Vec<f32>| values.into_iter().map(f32::to_bits).collect();
+            values(model).into_iter().map(to_bits).collect()
+        };
+        assert_eq!(bits(&packed_model), bits(&alone_model));
+        assert_ne!(values(&packed_model), values(&probe(&device)));
+    }
+
+    #[test]
+    fn moments_survive_export_and_import_across_a_repack() {
+        let device = Device::flex().autodiff();
+        let model = probe(&device);
+        let mut optimizer = AdamW::new(AdamWConfig::default());
+        let grads = uneven_gradients(&model, 0, &device);
+        let (model, _) = optimizer.step(model, &grads, 0.01);
+        let exported = optimizer.export_moments(&model);
+        assert_eq!(exported.len(), 2 * 6, "two moments of six parameters");
+        let dir = tempfile::tempdir().unwrap();
+        let file = dir.path().join("optimizer.safetensors");
+        crate::trainer::write_host_tensors(&file, &exported).unwrap();
+        let tensors = FlaxTensors::read(&file).unwrap();
+        let mut restored = AdamW::new(AdamWConfig::default());
+        restored.import_moments(&model, &tensors, 1).unwrap();
+        assert_eq!(restored.export_moments(&model), exported, "held loose");
+        let grads = uneven_gradients(&model, 1, &device);
+        let (from_restored, _) = restored.step(model.clone(), &grads, 0.01);
+        let (from_original, _) = optimizer.step(model, &grads, 0.01);
+        assert_eq!(values(&from_restored), values(&from_original));
     }
 
     #[test]
