@@ -4,6 +4,7 @@
 
 use std::io::{IsTerminal, Write};
 use std::path::{Path, PathBuf};
+use std::process::Child;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::time::{Duration, Instant};
@@ -11,6 +12,7 @@ use std::time::{Duration, Instant};
 use anyhow::{Context, bail};
 use clap::Parser;
 use coordinator::config::ModelPreset;
+use coordinator::local::watch::{Ended, failure_reason, watch};
 use coordinator::local::{LocalJob, figures, free_port};
 use coordinator::progress;
 use proto::v1::StatusRequest;
@@ -148,11 +150,18 @@ fn main() -> anyhow::Result<()> {
     let bar = std::io::stderr()
         .is_terminal()
         .then(|| runtime.spawn(draw_progress(job.clone(), started, Arc::clone(&done))));
-    let status = coordinator.wait()?;
+    let ended = watch(&mut coordinator, &mut workers, Duration::from_millis(250))?;
     done.store(true, Ordering::SeqCst);
     if let Some(bar) = bar {
         let _ = runtime.block_on(bar);
     }
+    let status = match ended {
+        Ended::Coordinator(status) => status,
+        Ended::WorkerFailed { index, status } => {
+            stop(&mut coordinator, &mut workers);
+            return Err(worker_failed(&dir, index, status));
+        }
+    };
     for worker in &mut workers {
         if status.success() {
             worker.wait()?;
@@ -167,6 +176,28 @@ fn main() -> anyhow::Result<()> {
         );
     }
     print_figures(&job, started.elapsed().as_secs_f64())
+}
+
+/// The error of a job stopped because worker `index` failed, with its reason from its log.
+fn worker_failed(dir: &Path, index: usize, status: std::process::ExitStatus) -> anyhow::Error {
+    let log = dir.join(format!("worker-{index}.log"));
+    let reason = std::fs::read_to_string(&log)
+        .ok()
+        .and_then(|text| failure_reason(&text))
+        .unwrap_or_else(|| "no reason in its log".into());
+    anyhow::anyhow!(
+        "worker local-{index} failed ({status}) while the job ran, so the job stopped: \
+         {reason}; see {}",
+        log.display()
+    )
+}
+
+/// Kills every process of the job and reaps it.
+fn stop(coordinator: &mut Child, workers: &mut [Child]) {
+    for child in std::iter::once(coordinator).chain(workers.iter_mut()) {
+        let _ = child.kill();
+        let _ = child.wait();
+    }
 }
 
 /// Prints the job's figures as one `key=value` line from its report, curves and evaluation,

@@ -18,6 +18,7 @@ use generated::{Found, GENERATED_WITH, GeneratedWith};
 
 pub mod figures;
 mod generated;
+pub mod watch;
 
 /// Size of a local job.
 #[derive(Debug, Clone)]
