@@ -12,6 +12,9 @@
 # refused). Beside each cell's weak-scaling efficiency (compute / step) it prints an analytic
 # ring without overlap: bus bandwidth 0.9 x link, 2 (N - 1) / N of the payload each way, and
 # 2 (N - 1) hops of the shaped delay. N = 2 at 100 Gbit/s runs first, as the calibration.
+# Every rank checks its parameters every step; `efficiency_auto` spreads that checksum over
+# the paper model's default interval (`checksum_every: auto`), as a job runs, and the
+# `rank0_*` keys split rank 0's step outside the compute and the ring.
 #
 # Then, unscaled and unshaped, the host path at the paper's size (1.22 GB of float32) between
 # two ranks on loopback: copy, local reduction, ring, update, checksum, in seconds and GB/s.
@@ -27,7 +30,7 @@ source scripts/env.sh
 RANKS=2,4,8
 LINKS=25,100,400
 WIRES=f32,bf16
-STEPS=4
+STEPS=8
 BUILD=1
 HOST_PATH=1
 SIM_MBIT=100
@@ -144,17 +147,18 @@ cell() {
     for pid in "${pids[@]}"; do wait "$pid"; done
     after=$(core_jiffies)
     busy=$(busiest_core "$before" "$after")
-    line=$(grep '^bench=data_path' "$SCRATCH/rank-0.out")
+    line=$(grep '^bench=data_path' "$SCRATCH/rank-0.out"); [ -n "${XF_DEBUG:-}" ] && echo "$line" >&2
     awk -v line="$line" -v n="$n" -v link="$link" -v wire="$wire" -v busy="$busy" \
         -v sim="$SIM_MBIT" -v delay="$DELAY_US" -v compute="$COMPUTE_S" -v values="$PAPER_VALUES" \
-        -v step="$(field "$line" step_s)" -v ring="$(field "$line" ring_s)" -v phases="$(rank_phases "$line")" 'BEGIN {
+        -v step="$(field "$line" step_s)" -v ring="$(field "$line" ring_s)" -v phases="$(rank_phases "$line")" \
+        -v step_auto="$(field "$line" step_auto_s)" -v every="$(field "$line" checksum_every_auto)" 'BEGIN {
         width = (wire == "bf16") ? 2 : 4
         bytes = values * width
         model_ring = 2 * (n - 1) / n * bytes / (0.9 * link * 1e9 / 8) + 2 * (n - 1) * delay * 1e-6
         model = compute / (compute + model_ring)
         measured = compute / step
         refused = (busy > 0.9) ? "core_saturated" : "no"
-        printf "bench=scaling ranks=%d link_gbit=%d wire=%s shaped_mbit=%d delay_us=%d payload_real_gb=%.3f step_s=%.4f ring_s=%.4f efficiency=%.4f model_ring_s=%.4f model_efficiency=%.4f deviation=%.4f busiest_core=%s refused=%s %s\n", n, link, wire, sim, delay, bytes / 1e9, step, ring, measured, model_ring, model, (measured - model) / model, busy, refused, phases
+        printf "bench=scaling ranks=%d link_gbit=%d wire=%s shaped_mbit=%d delay_us=%d payload_real_gb=%.3f step_s=%.4f ring_s=%.4f efficiency=%.4f model_ring_s=%.4f model_efficiency=%.4f deviation=%.4f busiest_core=%s refused=%s checksum_every_auto=%d efficiency_auto=%.4f %s\n", n, link, wire, sim, delay, bytes / 1e9, step, ring, measured, model_ring, model, (measured - model) / model, busy, refused, every, compute / step_auto, phases
     }'
 }
 

@@ -3,7 +3,8 @@
 //! long-poll, a SIGSTOPped worker, rank 0 SIGKILLed before the first commit, a late joiner, a
 //! SIGKILLed and restarted coordinator, a second coordinator on the same checkpoint URI, a
 //! `job.json` that is not a job state, a final commit the store refuses, and a worker stuck in
-//! a data read while its heartbeats go on. Each prints `fault=... key=value` figures.
+//! a data read while its heartbeats go on, and `xfactor-local` on a device its workers lack.
+//! Each prints `fault=... key=value` figures.
 
 mod common;
 
@@ -77,6 +78,52 @@ fn a_coordinator_stops_within_5_s_of_sigterm_while_workers_long_poll() {
     assert!(status.success(), "{status}");
     let _ = worker.kill();
     let _ = worker.wait();
+}
+
+/// A device no retry can bring (libtorch, never in a test build): each worker leaves the job
+/// with the reason, and `xfactor-local`, their supervisor here, stops naming it, where the
+/// workers used to sit out generation after generation.
+#[test]
+fn a_local_job_on_a_device_its_workers_lack_stops_naming_it() {
+    let dir = tempfile::tempdir().unwrap();
+    let started = Instant::now();
+    let mut local = std::process::Command::new(common::binaries().join("xfactor-local"))
+        .arg("--dir")
+        .arg(dir.path())
+        .args([
+            "--device",
+            "libtorch",
+            "--stage1-steps",
+            "2",
+            "--stage2-steps",
+            "1",
+        ])
+        .args(["--no-evaluate", "--port"])
+        .arg(free_port().unwrap().to_string())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    let status = wait_exit(&mut local, Duration::from_secs(120));
+    let seconds = started.elapsed().as_secs_f64();
+    let mut stderr = String::new();
+    std::io::Read::read_to_string(&mut local.stderr.take().unwrap(), &mut stderr).unwrap();
+    println!("fault=local_device_missing stop_seconds={seconds:.2}");
+    assert!(!status.success(), "{stderr}");
+    for expected in [
+        "worker local-",
+        "so the job stopped",
+        "`libtorch` cargo feature",
+    ] {
+        assert!(
+            stderr.contains(expected),
+            "`{expected}` missing from:\n{stderr}"
+        );
+    }
+    let coordinator_log = std::fs::read_to_string(dir.path().join("coordinator.log")).unwrap();
+    assert!(
+        coordinator_log.contains("worker left") && coordinator_log.contains("libtorch"),
+        "{coordinator_log}"
+    );
 }
 
 #[test]

@@ -23,6 +23,9 @@ use crate::shutdown::Shutdown;
 use crate::streaks::{AfterFailure, Blame, FailureStreaks, jitter};
 use crate::{device, evaluate, failure, health, metrics, training};
 
+/// The reason a worker gives the coordinator when a signal makes it leave.
+const SIGNALLED: &str = "SIGTERM";
+
 /// Runs the worker until the job finishes. Blocking; owns its async runtime, and ends every
 /// task it started before it returns.
 pub fn run(options: WorkerOptions) -> anyhow::Result<()> {
@@ -86,7 +89,7 @@ fn join_and_serve(
         Box::new(move || {
             Box::pin(async move {
                 let mut client = farewell_client;
-                say_goodbye(&mut client, &farewell_progress).await;
+                say_goodbye(&mut client, &farewell_progress, SIGNALLED).await;
             })
         }),
     );
@@ -131,7 +134,12 @@ impl Daemon<'_> {
         let mut failure: Option<GenerationFailure> = None;
         loop {
             let Some(waited) = self.next_assignment(after, failure.take().as_ref()) else {
-                return leave(self.runtime, &mut self.client, self.context.progress);
+                return leave(
+                    self.runtime,
+                    &mut self.client,
+                    self.context.progress,
+                    SIGNALLED,
+                );
             };
             let assignment = match waited {
                 Ok(assignment) => assignment,
@@ -156,7 +164,12 @@ impl Daemon<'_> {
                     tracing::info!("generation {after} done");
                 }
                 Ok(Some(Ending::Stopping)) => {
-                    return leave(self.runtime, &mut self.client, self.context.progress);
+                    return leave(
+                        self.runtime,
+                        &mut self.client,
+                        self.context.progress,
+                        SIGNALLED,
+                    );
                 }
                 Ok(Some(Ending::Suspended)) => {
                     tracing::warn!(
@@ -170,7 +183,12 @@ impl Daemon<'_> {
                 }
                 Err(error) if self.context.shutdown.is_cancelled() => {
                     tracing::info!(error = %format!("{error:#}"), "the generation ended with the shutdown");
-                    return leave(self.runtime, &mut self.client, self.context.progress);
+                    return leave(
+                        self.runtime,
+                        &mut self.client,
+                        self.context.progress,
+                        SIGNALLED,
+                    );
                 }
                 Err(error) => failure = Some(self.failed(&error, &mut streaks)?),
             }
@@ -217,13 +235,21 @@ impl Daemon<'_> {
     /// else's, and builds the report the next request for work carries; gives up only after
     /// [`crate::streaks::MAX_OWN_FAILURES`] own failures in a row.
     fn failed(
-        &self,
+        &mut self,
         error: &anyhow::Error,
         streaks: &mut FailureStreaks,
     ) -> anyhow::Result<GenerationFailure> {
         let progress = self.context.progress;
         progress.metrics.add(&metrics::RESTARTS, &[], 1.0);
         let report = failure::report(error);
+        if failure::cannot_run_here(error) {
+            // No retry can bring a device this build or host lacks: leave now, with the
+            // reason, rather than sitting out generation after generation.
+            leave(self.runtime, &mut self.client, progress, &report.reason)?;
+            bail!(
+                "this worker cannot do the job's work on this host, so it left the job: {error:#}"
+            );
+        }
         tracing::warn!(error = %report.reason, cause = ?report.cause, "generation abandoned");
         let draw = jitter(progress.worker_id(), streaks.in_a_row() + 1);
         let blame = if failure::ended_by_coordinator(error) {

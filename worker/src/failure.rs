@@ -9,6 +9,7 @@ use settings::work::{FailureCause, GenerationFailure};
 use crate::checkpoints::{CorruptCheckpoint, TransferError};
 use crate::collective::CollectiveError;
 use crate::context::GenerationEnded;
+use crate::device::DeviceMissing;
 
 /// The report of a failed generation: the whole error chain as its reason, and its cause.
 pub fn report(error: &anyhow::Error) -> GenerationFailure {
@@ -28,6 +29,14 @@ pub fn ended_by_coordinator(error: &anyhow::Error) -> bool {
                 Some(CollectiveError::Cancelled)
             )
     })
+}
+
+/// Whether `error` says this worker can never do the work asked: the job's device is not in
+/// this build or not on this host. Retrying cannot help, unlike every other failure.
+pub fn cannot_run_here(error: &anyhow::Error) -> bool {
+    error
+        .chain()
+        .any(|link| link.downcast_ref::<DeviceMissing>().is_some())
 }
 
 /// The first cause in `error`'s chain that names a culprit other than this worker;
@@ -158,6 +167,26 @@ mod tests {
             cause(&plain.context("step 3").unwrap_err()),
             FailureCause::Worker
         );
+    }
+
+    #[test]
+    fn only_a_device_missing_here_cannot_be_retried() {
+        let missing = anyhow::Error::new(DeviceMissing::NotInThisBuild {
+            backend: settings::Backend::Cuda,
+            feature: "cuda",
+        })
+        .context("generation 3");
+        assert!(cannot_run_here(&missing));
+        assert_eq!(cause(&missing), FailureCause::Worker);
+        let no_adapter = anyhow::Error::new(DeviceMissing::NoAdapter);
+        assert!(cannot_run_here(&no_adapter));
+        for retried in [
+            anyhow::anyhow!("NaN in the loss"),
+            anyhow::Error::new(CollectiveError::PeerGone { rank: 1 }),
+            anyhow::Error::new(store_error()),
+        ] {
+            assert!(!cannot_run_here(&retried), "{retried:#}");
+        }
     }
 
     #[test]

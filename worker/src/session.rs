@@ -24,17 +24,22 @@ use crate::progress::Progress;
 pub type Client = CoordinatorClient<InterceptedService<Channel, proto::AttachToken>>;
 
 /// Tells the coordinator this worker is gone, so its group re-forms at once.
-pub fn leave(runtime: &Runtime, client: &mut Client, progress: &Progress) -> anyhow::Result<()> {
-    runtime.block_on(say_goodbye(client, progress));
+pub fn leave(
+    runtime: &Runtime,
+    client: &mut Client,
+    progress: &Progress,
+    reason: &str,
+) -> anyhow::Result<()> {
+    runtime.block_on(say_goodbye(client, progress, reason));
     Ok(())
 }
 
 /// Tells the coordinator this worker leaves, waiting at most 5 s for its answer; a leave it
 /// does not hear is noticed from the silence.
-pub async fn say_goodbye(client: &mut Client, progress: &Progress) {
+pub async fn say_goodbye(client: &mut Client, progress: &Progress, reason: &str) {
     let request = LeaveRequest {
         worker_id: progress.worker_id(),
-        reason: "SIGTERM".into(),
+        reason: reason.into(),
         session: progress.session(),
     };
     match tokio::time::timeout(Duration::from_secs(5), client.leave(request)).await {

@@ -48,7 +48,7 @@ pub fn watch(
 }
 
 /// Why a process stopped, read from its log: its panic's place and message, else its last
-/// `Error:` or `ERROR` line, else its last line.
+/// `Error:` (without the prefix) or `ERROR` line, else its last line.
 pub fn failure_reason(log: &str) -> Option<String> {
     let lines: Vec<&str> = log.lines().map(str::trim).collect();
     if let Some(at) = lines.iter().position(|line| line.contains(" panicked at ")) {
@@ -67,7 +67,7 @@ pub fn failure_reason(log: &str) -> Option<String> {
         .find(|line| line.starts_with("Error:") || line.contains(" ERROR "));
     error
         .or_else(|| lines.iter().rev().find(|line| !line.is_empty()))
-        .map(|line| line.to_string())
+        .map(|line| line.strip_prefix("Error: ").unwrap_or(line).to_string())
 }
 
 #[cfg(test)]
@@ -92,7 +92,7 @@ mod tests {
         let log = "x  ERROR worker: first\nError: the device cuda is not built in\n\nlater\n";
         assert_eq!(
             failure_reason(log).unwrap(),
-            "Error: the device cuda is not built in"
+            "the device cuda is not built in"
         );
         assert_eq!(failure_reason("one\ntwo\n\n").unwrap(), "two");
         assert_eq!(failure_reason(""), None);

@@ -158,22 +158,23 @@ pub(super) fn concat(mut parts: Vec<Tensor<1>>) -> Tensor<1> {
     }
 }
 
-/// Puts every updated parameter back from its bucket, keeping what the old tensor carried
+/// Puts the updated parameters of one bucket back, keeping what each old tensor carried
 /// (autodiff tracking, `require_grad`, the gradient checkpointing strategy).
-pub(super) struct Scatter {
-    pub updated: Vec<Tensor<1>>,
-    pub places: HashMap<ParamId, Place>,
+pub(super) struct Scatter<'a> {
+    pub bucket: usize,
+    pub updated: Tensor<1>,
+    pub places: &'a HashMap<ParamId, Place>,
 }
 
-impl ModuleMapper for Scatter {
+impl ModuleMapper for Scatter<'_> {
     fn map_float<const D: usize>(&mut self, param: Param<Tensor<D>>) -> Param<Tensor<D>> {
         let Some(place) = self.places.get(&param.id).copied() else {
             return param;
         };
-        let Some(bucket) = self.updated.get(place.bucket) else {
+        if place.bucket != self.bucket {
             return param;
-        };
-        let values = bucket.clone().narrow(0, place.offset, place.len);
+        }
+        let values = self.updated.clone().narrow(0, place.offset, place.len);
         param.map(|tensor| {
             let shape = tensor.dims();
             let updated = values.reshape(shape);

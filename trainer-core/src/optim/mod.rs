@@ -116,13 +116,26 @@ impl AdamW {
         if layout != self.layout {
             self.repack(layout, &gather.flats);
         }
-        let updated = self.update_buckets(gather.flats, lr, clip_scale);
-        let mut scatter = Scatter {
-            updated,
-            places: self.layout.places(),
-        };
+        let places = self.layout.places();
+        let mut flats: HashMap<ParamId, Flat> = gather
+            .flats
+            .into_iter()
+            .map(|flat| (flat.member.id, flat))
+            .collect();
+        // Bucket by bucket, each put back before the next is computed, so the old values of
+        // one bucket at most live beside the new ones.
+        let mut model = model;
+        for bucket in 0..self.layout.buckets.len() {
+            let updated = self.update_bucket(bucket, &mut flats, lr, clip_scale);
+            let mut scatter = Scatter {
+                bucket,
+                updated,
+                places: &places,
+            };
+            model = model.map(&mut scatter);
+        }
         (
-            model.map(&mut scatter),
+            model,
             UpdateReport {
                 grad_norm,
                 applied: true,
@@ -130,37 +143,37 @@ impl AdamW {
         )
     }
 
-    /// Every bucket's new values (`flats`: its members), each element through the
+    /// Bucket `index`'s new values (its members taken from `flats`), each element through the
     /// per-parameter AdamW arithmetic.
-    fn update_buckets(&mut self, flats: Vec<Flat>, lr: f64, clip_scale: f64) -> Vec<Tensor<1>> {
-        let mut flats: HashMap<ParamId, Flat> = flats
-            .into_iter()
-            .map(|flat| (flat.member.id, flat))
-            .collect();
+    fn update_bucket(
+        &mut self,
+        index: usize,
+        flats: &mut HashMap<ParamId, Flat>,
+        lr: f64,
+        clip_scale: f64,
+    ) -> Tensor<1> {
         let config = &self.config;
         let t = self.updates as i32;
         let (beta1, beta2, epsilon) = (config.beta1, config.beta2, config.epsilon);
-        let mut updated = Vec::with_capacity(self.layout.buckets.len());
-        for (bucket, state) in self.layout.buckets.iter().zip(&mut self.moments) {
-            let (values, grads): (Vec<_>, Vec<_>) = bucket
-                .members
-                .iter()
-                .filter_map(|member| flats.remove(&member.id))
-                .map(|flat| (flat.value, flat.grad))
-                .unzip();
-            let value = concat(values);
-            let grad = concat(grads) * clip_scale;
-            state.first = state.first.clone() * beta1 + grad.clone() * (1.0 - beta1);
-            state.second = state.second.clone() * beta2 + grad.square() * (1.0 - beta2);
-            let first_hat = state.first.clone() / (1.0 - beta1.powi(t));
-            let second_hat = state.second.clone() / (1.0 - beta2.powi(t));
-            let mut step = first_hat / (second_hat.sqrt() + epsilon);
-            if bucket.decayed && config.weight_decay != 0.0 {
-                step = step + value.clone() * config.weight_decay;
-            }
-            updated.push(value - step * lr);
+        let bucket = &self.layout.buckets[index];
+        let state = &mut self.moments[index];
+        let (values, grads): (Vec<_>, Vec<_>) = bucket
+            .members
+            .iter()
+            .filter_map(|member| flats.remove(&member.id))
+            .map(|flat| (flat.value, flat.grad))
+            .unzip();
+        let value = concat(values);
+        let grad = concat(grads) * clip_scale;
+        state.first = state.first.clone() * beta1 + grad.clone() * (1.0 - beta1);
+        state.second = state.second.clone() * beta2 + grad.square() * (1.0 - beta2);
+        let first_hat = state.first.clone() / (1.0 - beta1.powi(t));
+        let second_hat = state.second.clone() / (1.0 - beta2.powi(t));
+        let mut step = first_hat / (second_hat.sqrt() + epsilon);
+        if bucket.decayed && config.weight_decay != 0.0 {
+            step = step + value.clone() * config.weight_decay;
         }
-        updated
+        value - step * lr
     }
 
     /// Moves every moment into the buckets of `layout` (`flats`: its members): from
@@ -177,10 +190,28 @@ impl AdamW {
             flats.iter().map(|flat| (flat.member.id, flat)).collect();
         let mut packed = Vec::with_capacity(layout.buckets.len());
         for bucket in &layout.buckets {
-            let (firsts, seconds): (Vec<_>, Vec<_>) = bucket
+            let members: Vec<&Flat> = bucket
                 .members
                 .iter()
-                .filter_map(|member| flats.get(&member.id))
+                .filter_map(|member| flats.get(&member.id).copied())
+                .collect();
+            if !members
+                .iter()
+                .any(|flat| held.contains_key(&flat.member.id))
+            {
+                // A bucket never updated: its zeros made whole, not member by member and
+                // then copied together (which would hold both at once, for every bucket).
+                let len = members.iter().map(|flat| flat.member.len).sum::<usize>();
+                let device = members.first().map(|flat| flat.value.device());
+                let zeros = || Tensor::zeros([len], &device.clone().unwrap_or_default());
+                packed.push(Moments {
+                    first: zeros(),
+                    second: zeros(),
+                });
+                continue;
+            }
+            let (firsts, seconds): (Vec<_>, Vec<_>) = members
+                .iter()
                 .map(|flat| match held.remove(&flat.member.id) {
                     Some(moments) => (moments.first, moments.second),
                     None => (flat.value.zeros_like(), flat.value.zeros_like()),

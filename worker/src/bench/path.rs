@@ -169,7 +169,11 @@ pub fn run_rank(args: &PathBenchArgs) -> anyhow::Result<()> {
     }
     if args.ring.rank == 0 {
         let parameters = replicas[0].model.parameter_count();
-        println!("bench=data_path {}", summary(args, parameters, &steps));
+        let unscaled: usize = layout.iter().sum();
+        println!(
+            "bench=data_path {}",
+            summary(args, parameters, unscaled, &steps)
+        );
     }
     // Let the peers finish reading before the streams close.
     std::thread::sleep(Duration::from_millis(300));
@@ -204,8 +208,15 @@ fn layout(config: &XFactorConfig, file: Option<&std::path::Path>) -> anyhow::Res
 /// The figures' line: the configuration, then the median of each phase over the steps. The
 /// host path is every phase but the optimizer's arithmetic (the device's work on a GPU, the
 /// CPU's here): the copy to the host, the local reduction, the ring, the upload and the
-/// checksum.
-fn summary(args: &PathBenchArgs, parameters: usize, steps: &[(f64, StepFigures)]) -> String {
+/// checksum. A job checks its parameters every `auto` steps of the unscaled model
+/// (`unscaled` values) by default, so the step and the host path are also given with the
+/// checksum spread over that many steps.
+fn summary(
+    args: &PathBenchArgs,
+    parameters: usize,
+    unscaled: usize,
+    steps: &[(f64, StepFigures)],
+) -> String {
     let median = |of: &dyn Fn(&(f64, StepFigures)) -> f64| {
         let mut values: Vec<f64> = steps.iter().map(of).collect();
         values.sort_by(f64::total_cmp);
@@ -223,10 +234,10 @@ fn summary(args: &PathBenchArgs, parameters: usize, steps: &[(f64, StepFigures)]
         let p = &f.phases;
         p.copy_s + p.local_reduce_s + p.ring_s + p.upload_s + p.checksum_s
     });
-    // A job checks every `auto` steps by default: the host path per step with the checksum
-    // spread over them.
-    let auto_every = settings::work::ChecksumEvery::Auto.steps(parameters);
-    let host_path_auto_s = host_path_s - checksum_s + checksum_s / auto_every as f64;
+    let auto_every = settings::work::ChecksumEvery::Auto.steps(unscaled);
+    let spread_checksum = |seconds: f64| seconds - checksum_s + checksum_s / auto_every as f64;
+    let host_path_auto_s = spread_checksum(host_path_s);
+    let step_auto_s = spread_checksum(step_s);
     let bytes = parameters as f64 * 4.0;
     let gb = |seconds: f64| bytes / 1e9 / seconds.max(1e-12);
     format!(
@@ -236,7 +247,7 @@ fn summary(args: &PathBenchArgs, parameters: usize, steps: &[(f64, StepFigures)]
          upload_s={upload_s:.4} upload_gbs={:.2} update_s={update_s:.4} \
          checksum_s={checksum_s:.4} checksum_gbs={:.2} host_path_s={host_path_s:.4} \
          checksum_every_auto={auto_every} host_path_auto_s={host_path_auto_s:.4} \
-         efficiency={:.4}",
+         step_auto_s={step_auto_s:.4} efficiency={:.4} efficiency_auto={:.4}",
         args.ring.peers.len(),
         args.model,
         args.scale,
@@ -251,5 +262,6 @@ fn summary(args: &PathBenchArgs, parameters: usize, steps: &[(f64, StepFigures)]
         gb(upload_s),
         gb(checksum_s),
         args.compute_s / step_s,
+        args.compute_s / step_auto_s,
     )
 }

@@ -358,37 +358,43 @@ impl InOrder {
     }
 }
 
-/// Phase 4: every replica applies `sum` on a thread of its own.
+/// Phase 4: every replica applies `sum`, side by side.
 fn apply_all<R: ReplicaModel>(
     replicas: &mut [R],
     sum: &[f32],
     loss: f32,
 ) -> Result<Vec<Applied>, ReplicaError> {
-    let results: Vec<Result<Applied, ReplicaError>> = std::thread::scope(|scope| {
-        let handles: Vec<_> = replicas
-            .iter_mut()
-            .map(|replica| scope.spawn(move || replica.apply(sum, loss)))
-            .collect();
-        handles.into_iter().map(join).collect()
-    });
-    results.into_iter().collect()
+    side_by_side(replicas, |replica| replica.apply(sum, loss))
+        .into_iter()
+        .collect()
 }
 
-/// Phase 5: every replica's checksum on a thread of its own; they received the same sum, so
-/// they must be bitwise equal.
-fn checksum_all<R: ReplicaModel>(replicas: &[R], step: u64) -> Result<u32, StepError> {
-    let checksums: Vec<u32> = std::thread::scope(|scope| {
-        let handles: Vec<_> = replicas
-            .iter()
-            .map(|replica| scope.spawn(move || replica.checksum()))
-            .collect();
-        handles.into_iter().map(join).collect()
-    });
+/// Phase 5: every replica's checksum, side by side; they received the same sum, so they
+/// must be bitwise equal.
+fn checksum_all<R: ReplicaModel>(replicas: &mut [R], step: u64) -> Result<u32, StepError> {
+    let checksums = side_by_side(replicas, |replica| replica.checksum());
     match checksums.split_first() {
         Some((&first, rest)) if rest.iter().all(|&other| other == first) => Ok(first),
         Some(_) => Err(StepError::ReplicasDiverged { step, checksums }),
         None => Err(StepError::NoReplicas),
     }
+}
+
+/// `work` on every replica, each on a thread of its own; a lone replica's on the caller's,
+/// since a thread would only add its start to the step (each replica keeps its own device
+/// stream whatever thread drives it).
+fn side_by_side<R: Send, T: Send>(replicas: &mut [R], work: impl Fn(&mut R) -> T + Sync) -> Vec<T> {
+    if let [only] = replicas {
+        return vec![work(only)];
+    }
+    let work = &work;
+    std::thread::scope(|scope| {
+        let handles: Vec<_> = replicas
+            .iter_mut()
+            .map(|replica| scope.spawn(move || work(replica)))
+            .collect();
+        handles.into_iter().map(join).collect()
+    })
 }
 
 /// A scoped thread's result; its panic carried on to the caller.
