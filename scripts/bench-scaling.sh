@@ -147,7 +147,7 @@ cell() {
     for pid in "${pids[@]}"; do wait "$pid"; done
     after=$(core_jiffies)
     busy=$(busiest_core "$before" "$after")
-    line=$(grep '^bench=data_path' "$SCRATCH/rank-0.out"); [ -n "${XF_DEBUG:-}" ] && echo "$line" >&2
+    line=$(grep '^bench=data_path' "$SCRATCH/rank-0.out")
     awk -v line="$line" -v n="$n" -v link="$link" -v wire="$wire" -v busy="$busy" \
         -v sim="$SIM_MBIT" -v delay="$DELAY_US" -v compute="$COMPUTE_S" -v values="$PAPER_VALUES" \
         -v step="$(field "$line" step_s)" -v ring="$(field "$line" ring_s)" -v phases="$(rank_phases "$line")" \
