@@ -145,9 +145,10 @@ pub fn flatten_parameters<M: Module>(module: &M) -> Vec<f32> {
 /// CRC-32 of every parameter's little-endian `f32` bytes in module order: equal on two
 /// processes exactly when their parameters are bitwise equal (up to CRC collisions).
 ///
-/// The parameters are cut into as many runs of whole tensors as the host has cores, about
-/// equal in bytes; each run is read to the host one tensor at a time and hashed in bulk on a
-/// thread of its own, and the runs' CRCs are joined with CRC-32's combination rule. That is
+/// The parameters are cut into as many runs of whole tensors as the host has cores (fewer
+/// for a small model: one per [`BYTES_PER_HASHING_THREAD`]), about equal in bytes; each run
+/// is read to the host one tensor at a time and hashed in bulk on a thread of its own (a lone
+/// run on the caller's), and the runs' CRCs are joined with CRC-32's combination rule. That is
 /// the same value as one CRC over the concatenated bytes, at memory speed (the paper model's
 /// 1.22 GB took 2.6 s fed four bytes at a time; `benches/checksum.rs` measures both), holding
 /// one tensor's host copy per thread at a time.
@@ -160,26 +161,47 @@ pub fn parameter_checksum<M: Module>(module: &M) -> u32 {
     }
     let mut collect = Collect(Vec::new());
     module.visit(&mut collect);
-    let threads = std::thread::available_parallelism().map_or(1, |n| n.get());
+    let bytes: usize = collect
+        .0
+        .iter()
+        .map(|tensor| tensor.shape().num_elements() * std::mem::size_of::<f32>())
+        .sum();
+    let threads = host_cores().min(bytes.div_ceil(BYTES_PER_HASHING_THREAD));
     crc32_of_tensors(&collect.0, threads)
+}
+
+/// Bytes a hashing thread is given at least: CRC-32 takes about 2 ms for 16 MiB here, some
+/// fifty times a thread's start, so a small model (the tiny one checks every step) is hashed
+/// on the caller's thread alone.
+const BYTES_PER_HASHING_THREAD: usize = 16 << 20;
+
+/// The host's cores, asked once (the answer reads the cgroup's limits from files).
+fn host_cores() -> usize {
+    static CORES: std::sync::OnceLock<usize> = std::sync::OnceLock::new();
+    *CORES.get_or_init(|| std::thread::available_parallelism().map_or(1, |n| n.get()))
 }
 
 /// CRC-32 of the bytes of `tensors` one after another, in `threads` runs of whole tensors
 /// hashed side by side and combined in order.
 fn crc32_of_tensors(tensors: &[Tensor<1>], threads: usize) -> u32 {
     let sizes: Vec<usize> = tensors.iter().map(|t| t.shape().num_elements()).collect();
+    let hash = |run: &[Tensor<1>]| {
+        let mut hasher = crc32fast::Hasher::new();
+        for tensor in run {
+            hasher.update(tensor.clone().into_data().as_bytes());
+        }
+        hasher
+    };
+    let runs = runs(&sizes, threads);
+    if let [only] = runs.as_slice() {
+        return hash(&tensors[only.clone()]).finalize();
+    }
     let hashers: Vec<crc32fast::Hasher> = std::thread::scope(|scope| {
-        let handles: Vec<_> = runs(&sizes, threads)
+        let handles: Vec<_> = runs
             .into_iter()
             .map(|run| {
                 let run = &tensors[run];
-                scope.spawn(move || {
-                    let mut hasher = crc32fast::Hasher::new();
-                    for tensor in run {
-                        hasher.update(tensor.clone().into_data().as_bytes());
-                    }
-                    hasher
-                })
+                scope.spawn(move || hash(run))
             })
             .collect();
         handles
