@@ -112,16 +112,16 @@ impl AdamW {
             .iter()
             .map(|flat| (flat.member, flat.decayed))
             .collect();
-        let layout = Layout::plan(&members, BUCKET_VALUES);
-        if layout != self.layout {
-            self.repack(layout, &gather.flats);
-        }
-        let places = self.layout.places();
         let mut flats: HashMap<ParamId, Flat> = gather
             .flats
             .into_iter()
             .map(|flat| (flat.member.id, flat))
             .collect();
+        let layout = Layout::plan(&members, BUCKET_VALUES);
+        if layout != self.layout {
+            self.repack(layout, &flats);
+        }
+        let places = self.layout.places();
         // Bucket by bucket, each put back before the next is computed, so the old values of
         // one bucket at most live beside the new ones.
         let mut model = model;
@@ -176,24 +176,22 @@ impl AdamW {
         value - step * lr
     }
 
-    /// Moves every moment into the buckets of `layout` (`flats`: its members): from
+    /// Moves every moment into the buckets of `layout` (`flats`: its members, by id): from
     /// the old buckets, from imported moments, or zeros for a parameter never updated. A
     /// parameter that left the buckets keeps its moments aside.
-    fn repack(&mut self, layout: Layout, flats: &[Flat]) {
+    fn repack(&mut self, layout: Layout, flats: &HashMap<ParamId, Flat>) {
         let old_places = self.layout.places();
         let mut held: HashMap<ParamId, Moments> = old_places
             .keys()
             .filter_map(|&id| Some((id, self.moments_of(id, &old_places)?)))
             .collect();
         held.extend(self.loose.drain());
-        let flats: HashMap<ParamId, &Flat> =
-            flats.iter().map(|flat| (flat.member.id, flat)).collect();
         let mut packed = Vec::with_capacity(layout.buckets.len());
         for bucket in &layout.buckets {
             let members: Vec<&Flat> = bucket
                 .members
                 .iter()
-                .filter_map(|member| flats.get(&member.id).copied())
+                .filter_map(|member| flats.get(&member.id))
                 .collect();
             if !members
                 .iter()
