@@ -391,13 +391,24 @@ fn main() {
     let pair = uniform([options.batch, 2, side, side, 3], 1, &device);
     let mask = two_quadrant_mask(options.batch, config.grid_side(), &device);
 
+    let started = Instant::now();
+    // On a GPU the first steps compile and autotune their kernels for minutes: each step's
+    // time goes to stderr as it ends, so a run cut short still says where it was.
+    let step = |phase: &str, index: usize| {
+        let seconds = stage1_step(&model, &pair, &mask, options.shards);
+        eprintln!(
+            "progress phase={phase} step={index} step_s={seconds:.3} elapsed_s={:.1}",
+            started.elapsed().as_secs_f64()
+        );
+        seconds
+    };
     let warmups: Vec<f64> = (0..options.warmup.max(1))
-        .map(|_| stage1_step(&model, &pair, &mask, options.shards))
+        .map(|index| step("warmup", index))
         .collect();
     let (warmup, warmup_last) = (warmups[0], warmups[warmups.len() - 1]);
-    let (counted, kernels) = count_kernels(|| stage1_step(&model, &pair, &mask, options.shards));
+    let (counted, kernels) = count_kernels(|| step("timed", 0));
     let mut steps: Vec<f64> = std::iter::once(counted)
-        .chain((1..options.steps).map(|_| stage1_step(&model, &pair, &mask, options.shards)))
+        .chain((1..options.steps).map(|index| step("timed", index)))
         .collect();
     steps.sort_by(f64::total_cmp);
     let step_s = steps[steps.len() / 2];
@@ -442,7 +453,7 @@ fn kernel_figures(
 ) -> String {
     let (profiled, time) = time_kernels(step);
     format!(
-        " kernels_per_step={} kernel_kinds={} top_kernels={} profiled_step_s={profiled:.3} kernel_device_s={:.3} kernel_span_s={:.3} kernels_timed={} kernel_timing={} device_share={:.2}",
+        " kernels_per_step={} kernel_kinds={} top_kernels={} profiled_step_s={profiled:.3} kernel_device_s={:.3} kernel_span_s={:.3} kernels_timed={} kernel_timing={} device_share={:.2} device_ms_by_kind={}",
         kernels.total(),
         kernels.kinds.len(),
         kernels.top(6),
@@ -450,6 +461,7 @@ fn kernel_figures(
         time.span_s,
         time.timed,
         time.method(),
-        time.device_s / profiled.max(1e-9)
+        time.device_s / profiled.max(1e-9),
+        time.top(10)
     )
 }

@@ -6,6 +6,7 @@
 //! The brackets cost the host a little per launch, so a step measured this way is a step of
 //! its own, not one of the timed ones.
 
+use std::collections::BTreeMap;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, PoisonError};
 use std::time::Instant;
@@ -15,7 +16,7 @@ use burn::cubecl::logging::{
 };
 
 /// Where the device time of some work went.
-#[derive(Debug, Clone, Copy, Default, PartialEq)]
+#[derive(Debug, Clone, Default, PartialEq)]
 pub struct KernelTime {
     /// Kernels launched.
     pub launched: u64,
@@ -31,6 +32,9 @@ pub struct KernelTime {
     /// (`TimingMethod::System`: wgpu once its timestamp queries run out, or without them),
     /// which counts submission and compilation too.
     pub host_timed: bool,
+    /// The timed kernels' device time by kind (the first field of cubecl's label), in
+    /// seconds, the largest first: where a step's device time goes.
+    pub by_kind: Vec<(String, f64)>,
 }
 
 impl KernelTime {
@@ -44,14 +48,40 @@ impl KernelTime {
             "device"
         }
     }
+
+    /// `kind:milliseconds` for the `top` kinds that took the most device time, `;`-separated
+    /// (no spaces, so it is one `key=value` figure).
+    pub fn top(&self, top: usize) -> String {
+        let parts: Vec<String> = self
+            .by_kind
+            .iter()
+            .take(top)
+            .map(|(kind, seconds)| format!("{kind}:{:.1}", seconds * 1e3))
+            .collect();
+        parts.join(";")
+    }
+
+    /// Adds one kernel's device time to the totals.
+    fn add(&mut self, kernel: &str, seconds: f64, method: TimingMethod) {
+        self.timed += 1;
+        self.device_s += seconds;
+        self.host_timed |= method == TimingMethod::System;
+        let kind = kernel_kind(kernel);
+        match self.by_kind.iter_mut().find(|(known, _)| *known == kind) {
+            Some((_, total)) => *total += seconds,
+            None => self.by_kind.push((kind, seconds)),
+        }
+    }
 }
+
+use super::kernels::kernel_kind;
 
 /// What the observer collected while installed.
 #[derive(Default)]
 struct Timings {
     launched: AtomicU64,
-    unread: Mutex<Vec<ProfileDuration>>,
-    read: Mutex<Vec<(Duration, TimingMethod)>>,
+    unread: Mutex<Vec<(&'static str, ProfileDuration)>>,
+    read: Mutex<Vec<(&'static str, Duration, TimingMethod)>>,
 }
 
 impl LaunchObserver for Timings {
@@ -63,20 +93,20 @@ impl LaunchObserver for Timings {
         TimingRequest::Deferred
     }
 
-    fn profiled(&self, _kernel: &'static str, profile: ProfileDuration) {
+    fn profiled(&self, kernel: &'static str, profile: ProfileDuration) {
         self.unread
             .lock()
             .unwrap_or_else(PoisonError::into_inner)
-            .push(profile);
+            .push((kernel, profile));
     }
 
     /// Where the profiling logger is on, it reads each measurement itself and hands over the
     /// length (the kernels then ran one at a time).
-    fn timed(&self, _kernel: &'static str, duration: Duration, method: TimingMethod) {
+    fn timed(&self, kernel: &'static str, duration: Duration, method: TimingMethod) {
         self.read
             .lock()
             .unwrap_or_else(PoisonError::into_inner)
-            .push((duration, method));
+            .push((kernel, duration, method));
     }
 }
 
@@ -100,30 +130,28 @@ pub fn time_kernels<T>(work: impl FnOnce() -> T) -> (T, KernelTime) {
             .lock()
             .unwrap_or_else(PoisonError::into_inner),
     );
-    for profile in unread {
+    for (kernel, profile) in unread {
         let method = profile.timing_method();
         let Some(ticks) = futures::executor::block_on(profile.resolve()) else {
             continue;
         };
-        time.timed += 1;
-        time.device_s += ticks.duration().as_secs_f64();
-        time.host_timed |= method == TimingMethod::System;
+        time.add(kernel, ticks.duration().as_secs_f64(), method);
         first_start = first_start.min(ticks.start_duration_since(epoch).as_secs_f64());
         last_end = last_end.max(ticks.end_duration_since(epoch).as_secs_f64());
     }
-    for (duration, method) in timings
+    for (kernel, duration, method) in timings
         .read
         .lock()
         .unwrap_or_else(PoisonError::into_inner)
         .iter()
     {
-        time.timed += 1;
-        time.device_s += duration.as_secs_f64();
-        time.host_timed |= *method == TimingMethod::System;
+        time.add(kernel, duration.as_secs_f64(), *method);
     }
     if last_end > first_start {
         time.span_s = last_end - first_start;
     }
+    time.by_kind
+        .sort_by(|a, b| b.1.total_cmp(&a.1).then_with(|| a.0.cmp(&b.0)));
     (result, time)
 }
 
@@ -163,5 +191,28 @@ mod tests {
             "{time:?}, wall {wall}"
         );
         assert_ne!(time.method(), "none");
+        let split: f64 = time.by_kind.iter().map(|(_, seconds)| seconds).sum();
+        assert!((split - time.device_s).abs() <= 1e-9, "{time:?}");
+        assert!(time.by_kind.windows(2).all(|pair| pair[0].1 >= pair[1].1));
+    }
+
+    #[test]
+    fn device_time_is_split_by_kind_largest_first() {
+        let mut time = KernelTime::default();
+        time.add(
+            "Matmul | f32 | CubeTensor_1a2b3c4d",
+            0.004,
+            TimingMethod::Device,
+        );
+        time.add("reduce_sum_deadbeef", 0.001, TimingMethod::Device);
+        time.add(
+            "Matmul | f32 | CubeTensor_0badcafe",
+            0.002,
+            TimingMethod::Device,
+        );
+        time.by_kind.sort_by(|a, b| b.1.total_cmp(&a.1));
+        assert_eq!((time.timed, time.method()), (3, "device"));
+        assert_eq!(time.top(1), "Matmul:6.0");
+        assert_eq!(time.top(5), "Matmul:6.0;reduce_sum:1.0");
     }
 }

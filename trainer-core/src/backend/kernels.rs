@@ -63,7 +63,7 @@ impl KernelCounts {
 
 /// A kernel's kind from cubecl's profile label (`Kind | f32 | ... _1a2b3c4d`): its first
 /// field, without module paths, spaces or the hash.
-fn kernel_kind(label: &str) -> String {
+pub(super) fn kernel_kind(label: &str) -> String {
     let first = label.split('|').next().unwrap_or(label).trim();
     let without_hash = match first.rsplit_once('_') {
         Some((head, hash)) if hash.len() == 8 && hash.chars().all(|c| c.is_ascii_hexdigit()) => {
