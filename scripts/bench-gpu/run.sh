@@ -1,21 +1,48 @@
 #!/usr/bin/env bash
 # Entry point of the packed GPU benchmark folder (made by scripts/bench-gpu.sh). Runs on the
-# host it is copied to, without Rust or a network, and ends within DEADLINE_S (default 450 s,
-# so one 8-minute GPU loan holds all of it): first what the host offers, then our stage-1 step
-# per compute path beside the JAX peer measured in the same run (on the host's best platform),
-# most telling first (cuda, then wgpu and vulkan, then libtorch; the benchmark model, then the
-# paper model at batch 8 and at the largest batch up to MAX_BATCH that fits), a real two-worker
-# job on the GPU, the release's half precisions last, and a summary table. Every figure is a
-# `key=value` line; a path that cannot run says why and the rest go on.
-#   ./run.sh      # STEPS=5 steps per measurement, DEADLINE_S=450, LIMIT_S=120 per run,
-#                 # MAX_BATCH=64, JOB_STEPS=300, ROADS="cuda wgpu vulkan libtorch" (on a GPU)
+# host it is copied to, without Rust or a network, and ends within DEADLINE_S (default 540 s,
+# so one 15-minute GPU loan holds it with its start): first what the host offers, then our
+# stage-1 step per compute path beside the JAX peer measured in the same run (on the host's
+# best platform), most telling first (on a GPU the paper model at batch 8, then the benchmark
+# model, the bf16 speed mode, the largest batch up to MAX_BATCH that fits; cuda, then wgpu and
+# vulkan, then libtorch), a real two-worker job on the GPU, the release's half precisions last,
+# and a summary table. Every figure is a `key=value` line; each step's time goes to
+# steps.log as it ends; a path that cannot run says why and the rest go on.
+#
+# On an H200 (2026-11-27) the cuda road's first paper-model step had not ended after 270 s:
+# cubecl's autotune compiled 447 candidate kernels with NVRTC, one after another on one core
+# (262 s), while the GPU idled. Every run here therefore works in one folder whose cubecl.toml
+# keeps compiled kernels (`[compilation] cache`) and autotune's choices in KERNEL_CACHE
+# (default kernel-cache/ beside this script): a later run, or a later loan that carries the
+# folder back, skips what was tuned and compiled. autotune.log lists every tuning.
+#   ./run.sh      # STEPS=5 steps per measurement, DEADLINE_S=540, LIMIT_S=420 per run,
+#                 # MAX_BATCH=64, JOB_STEPS=300, ROADS="cuda wgpu vulkan libtorch" (on a GPU),
+#                 # KERNEL_CACHE; with OUT set, the cache and logs are copied there at the end
 set -uo pipefail
 here="$(cd "$(dirname "$0")" && pwd)"
 steps="${STEPS:-5}"
 started=$(date +%s)
-deadline="${DEADLINE_S:-450}"
+deadline="${DEADLINE_S:-540}"
 results="$here/results.txt"
 : >"$results"
+steps_log="$here/steps.log"
+: >"$steps_log"
+# One working folder for every run: cubecl reads its cubecl.toml from the current folder.
+work="$here/work"
+kernel_cache="${KERNEL_CACHE:-$here/kernel-cache}"
+mkdir -p "$work" "$kernel_cache"
+cat >"$work/cubecl.toml" <<TOML
+[compilation]
+cache = true
+
+[environment]
+path = { directory = "$kernel_cache" }
+
+[autotune.logger]
+level = "minimal"
+file = "$here/autotune.log"
+append = true
+TOML
 mkdir -p "$here/bin"
 # xz where the host has it, else Python's lzma module.
 unpack() { # packed binary
@@ -119,7 +146,9 @@ binary_for() { # path
 
 # The first line of the last failed run's stderr that says what went wrong.
 why_failed() {
-    { grep -m1 -iE 'error|panicked|unavailable|out of memory' "$here/last-error.log" || tail -1 "$here/last-error.log"; } |
+    # A graphics library's XDG_RUNTIME_DIR complaint on a headless host is noise, not the cause.
+    grep -v 'XDG_RUNTIME_DIR' "$here/last-error.log" >"$here/last-error.kept" || true
+    { grep -m1 -iE 'error|panicked|unavailable|out of memory' "$here/last-error.kept" || tail -1 "$here/last-error.kept"; } |
         tr -d '"' | cut -c1-300
 }
 
@@ -132,10 +161,25 @@ measure() { # backend model batch precision jax [compute]
     [ "$1" = cpu ] || args+=(--shards 1)
     [ "$5" = jax ] || args+=(--skip-jax)
     limit=$(left)
-    [ "$limit" -gt "${LIMIT_S:-120}" ] && limit="${LIMIT_S:-120}"
+    [ "$limit" -gt "${LIMIT_S:-420}" ] && limit="${LIMIT_S:-420}"
     [ "$limit" -ge 20 ] || { echo "out of time" >"$here/last-error.log"; return 1; }
-    timeout "$limit" "$bench" "${args[@]}" 2>"$here/last-error.log" | grep '^backend=' | tee -a "$results"
-    [ "${PIPESTATUS[0]}" = 0 ]
+    echo "run backend=$1 model=$2 batch=$3 precision=$4 compute=${6:-f32} limit_s=$limit" >>"$steps_log"
+    (cd "$work" && timeout "$limit" "$bench" "${args[@]}" 2>"$here/last-error.log") | grep '^backend=' | tee -a "$results"
+    local status=${PIPESTATUS[0]}
+    grep '^progress' "$here/last-error.log" >>"$steps_log"
+    [ "$status" = 0 ]
+}
+
+# The JAX peer alone, for a model whose run of ours ended before its peer ran: the reference's
+# own line, under `backend=jax`.
+jax_alone() { # model batch
+    local dims=(--height 64 --width 64 --patch-size 8 --features 256 --num-heads 8 --num-layers 4
+        --pose-dim 64 --global-tokens 8)
+    [ "$1" = paper ] && dims=(--height 256 --width 256 --patch-size 16 --features 1024
+        --num-heads 16 --num-layers 8 --pose-dim 256 --global-tokens 32)
+    [ -n "${XFACTOR_JAX_PYTHON:-}" ] && [ "$(left)" -ge 60 ] || return 0
+    timeout 90 "$XFACTOR_JAX_PYTHON" "$here/xfactor_reference.py" bench --batch "$2" --steps "$steps" \
+        "${dims[@]}" 2>>"$here/last-error.log" | grep '^jax_' | sed "s/^/backend=jax model=$1 batch=$2 /"
 }
 
 # Batch 8, then doubling while it fits, up to MAX_BATCH (each batch in its own process, so
@@ -157,23 +201,26 @@ candidates=(cpu wgpu vulkan libtorch cuda)
 for path in "${candidates[@]}"; do
     binary_for "$path" >/dev/null && paths+=("$path")
 done
-models=(benchmark)
-[ "$gpu" = 1 ] && models=(benchmark paper)
-[ "$gpu" = 1 ] || echo "model=paper status=skipped reason=\"no GPU: one step of the 305M model at 256x256 takes minutes on a CPU\""
-for model in "${models[@]}"; do
-    for path in "${paths[@]}"; do
-        measure "$path" "$model" 8 f32 jax ||
-            echo "backend=$path model=$model batch=8 status=failed reason=\"$(why_failed)\""
-        [ "$gpu" = 1 ] && [ "$model" = paper ] && largest_batch "$path" "$model" | tee -a "$results"
-    done
-done
-
-# The bf16 speed mode (`model.compute: bf16`: products and attention in bf16 on tensor cores,
-# float32 weights and AdamW state) on the paper model, where the GPU roads run.
 if [ "$gpu" = 1 ]; then
+    # Most telling first: the paper model's first run on a road tunes its kernels for minutes.
     for path in "${paths[@]}"; do
+        if ! measure "$path" paper 8 f32 jax; then
+            echo "backend=$path model=paper batch=8 status=failed reason=\"$(why_failed)\""
+            jax_alone paper 8
+        fi
+        measure "$path" benchmark 8 f32 jax ||
+            echo "backend=$path model=benchmark batch=8 status=failed reason=\"$(why_failed)\""
+        # The bf16 speed mode (`model.compute: bf16`: products and attention in bf16 on tensor
+        # cores, float32 weights and AdamW state).
         measure "$path" paper 8 f32 no bf16 >/dev/null ||
             echo "backend=$path model=paper batch=8 compute=bf16 status=failed reason=\"$(why_failed)\""
+        largest_batch "$path" paper | tee -a "$results"
+    done
+else
+    echo "model=paper status=skipped reason=\"no GPU: one step of the 305M model at 256x256 takes minutes on a CPU\""
+    for path in "${paths[@]}"; do
+        measure "$path" benchmark 8 f32 jax ||
+            echo "backend=$path model=benchmark batch=8 status=failed reason=\"$(why_failed)\""
     done
 fi
 
@@ -182,7 +229,8 @@ job_device=cpu
 [ "$gpu" = 1 ] && job_device=cuda
 if [ -x "$here/bin/xfactor-local" ] && [ "$(left)" -gt 90 ]; then
     job_dir=$(mktemp -d)
-    timeout $(($(left) - 30)) "$here/bin/xfactor-local" --dir "$job_dir" --device "$job_device" \
+    # From the working folder, whose cubecl.toml the workers read too.
+    cd "$work" && timeout $(($(left) - 30)) "$here/bin/xfactor-local" --dir "$job_dir" --device "$job_device" \
         --workers 2 --stage1-steps "${JOB_STEPS:-300}" --stage2-steps 20 --no-evaluate \
         2>"$here/last-error.log" | grep '^outcome=' | sed 's/^/job /' | tee -a "$results" ||
         echo "job device=$job_device status=failed reason=\"$(why_failed)\""
@@ -217,3 +265,11 @@ widths = [max(len(str(row[i])) for row in [head] + rows) for i in range(len(head
 for row in [head] + rows:
     print("  " + "  ".join(str(cell).ljust(width) for cell, width in zip(row, widths)))
 EOF
+
+# What a later loan carries back to skip tuning and compiling (KERNEL_CACHE), and the logs.
+echo "kernel_cache bytes=$(du -sb "$kernel_cache" | cut -f1) path=$kernel_cache"
+if [ -n "${OUT:-}" ] && [ -d "$OUT" ]; then
+    cp "$results" "$steps_log" "$OUT/"
+    [ -e "$here/autotune.log" ] && xz -c "$here/autotune.log" >"$OUT/autotune.log.xz"
+    tar -C "$kernel_cache" -cJf "$OUT/kernel-cache.tar.xz" .
+fi
