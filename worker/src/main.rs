@@ -94,6 +94,12 @@ struct DaemonArgs {
     /// leaves at once
     #[arg(long, value_name = "SECONDS", default_value_t = 10.0, value_parser = positive_seconds)]
     shutdown_grace_s: f64,
+    /// Where compiled GPU kernels and autotune's choices are kept across restarts (cubecl's
+    /// cache; by default xfactor-dist/kernels in the user's cache): a worker on CUDA otherwise
+    /// compiles and tunes for minutes before its first step, again after every restart. A
+    /// cubecl.toml or burn.toml in the working folder or above it takes precedence
+    #[arg(long, value_name = "DIR", env = "XFACTOR_KERNEL_CACHE")]
+    kernel_cache: Option<PathBuf>,
     /// Scratch space for checkpoints (by default a fresh folder in the system's temp dir)
     #[arg(long, value_name = "DIR")]
     scratch: Option<PathBuf>,
@@ -234,5 +240,19 @@ fn main() -> anyhow::Result<()> {
     }
     cli.daemon.log.init()?;
     tracing::debug!(?tuning, "allocator tuned");
+    keep_kernels(cli.daemon.kernel_cache.clone());
     run(cli.daemon.into_options()?)
+}
+
+/// Points cubecl's kernel cache at `--kernel-cache` (or the default folder) before any GPU
+/// work. A folder that cannot be made costs compile time, not the run: it is logged.
+fn keep_kernels(folder: Option<PathBuf>) {
+    let folder = folder.unwrap_or_else(trainer_core::backend::default_kernel_cache);
+    match trainer_core::backend::keep_kernels_in(&folder) {
+        Ok(kept) => tracing::info!(?kept, "GPU kernel cache"),
+        Err(error) => tracing::warn!(
+            "{:#}: GPU kernels are compiled and tuned again after a restart",
+            anyhow::Error::from(error)
+        ),
+    }
 }

@@ -6,7 +6,6 @@
 //! The brackets cost the host a little per launch, so a step measured this way is a step of
 //! its own, not one of the timed ones.
 
-use std::collections::BTreeMap;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Arc, Mutex, PoisonError};
 use std::time::Instant;

@@ -3,6 +3,7 @@
 //! an error that names the feature, never a panic inside burn.
 
 mod host;
+mod kernel_cache;
 mod kernel_time;
 mod kernels;
 mod memory;
@@ -11,6 +12,7 @@ use burn::tensor::{Device, DeviceKind};
 pub use host::{
     Adapter, AdapterKind, CudaUnavailable, HostDevices, cuda_device_count, wgpu_adapters,
 };
+pub use kernel_cache::{KernelCache, KernelCacheError, default_kernel_cache, keep_kernels_in};
 pub use kernel_time::{KernelTime, time_kernels};
 pub use kernels::{KernelCounts, count_kernels};
 pub use memory::MemoryFigures;
