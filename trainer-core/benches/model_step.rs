@@ -391,27 +391,10 @@ fn main() {
     let pair = uniform([options.batch, 2, side, side, 3], 1, &device);
     let mask = two_quadrant_mask(options.batch, config.grid_side(), &device);
 
-    let started = Instant::now();
-    // On a GPU the first steps compile and autotune their kernels for minutes: each step's
-    // time goes to stderr as it ends, so a run cut short still says where it was.
-    let step = |phase: &str, index: usize| {
-        let seconds = stage1_step(&model, &pair, &mask, options.shards);
-        eprintln!(
-            "progress phase={phase} step={index} step_s={seconds:.3} elapsed_s={:.1}",
-            started.elapsed().as_secs_f64()
-        );
-        seconds
-    };
-    let warmups: Vec<f64> = (0..options.warmup.max(1))
-        .map(|index| step("warmup", index))
-        .collect();
-    let (warmup, warmup_last) = (warmups[0], warmups[warmups.len() - 1]);
-    let (counted, kernels) = count_kernels(|| step("timed", 0));
-    let mut steps: Vec<f64> = std::iter::once(counted)
-        .chain((1..options.steps).map(|index| step("timed", index)))
-        .collect();
+    let (warmups, mut steps, kernels) = timed_steps(&options, &model, &pair, &mask);
     steps.sort_by(f64::total_cmp);
     let step_s = steps[steps.len() / 2];
+    let (warmup, warmup_last) = (warmups[0], warmups[warmups.len() - 1]);
     let (param_bytes, optimizer_bytes) = training_bytes(model.num_params());
     let mut line = format!(
         "backend={} model={} precision={} compute={} batch={} shards={} params={} param_bytes={param_bytes} optimizer_bytes={optimizer_bytes} warmup_steps={} warmup_step_s={warmup:.3} warmup_last_step_s={warmup_last:.3} step_s={step_s:.3} min_step_s={:.3} pairs_per_s={:.2} checkpointing={}",
@@ -443,6 +426,34 @@ fn main() {
         line.push_str(&paper_figures(&inference));
     }
     println!("{line}");
+}
+
+/// The warm-up steps' seconds, the timed steps' seconds and the kernels of the first timed
+/// step. On a GPU the first steps compile and autotune their kernels for minutes: each step's
+/// time goes to stderr as it ends, so a run cut short still says where it was.
+fn timed_steps(
+    options: &Options,
+    model: &XFactor,
+    pair: &Tensor<5>,
+    mask: &Tensor<2>,
+) -> (Vec<f64>, Vec<f64>, trainer_core::backend::KernelCounts) {
+    let started = Instant::now();
+    let step = |phase: &str, index: usize| {
+        let seconds = stage1_step(model, pair, mask, options.shards);
+        eprintln!(
+            "progress phase={phase} step={index} step_s={seconds:.3} elapsed_s={:.1}",
+            started.elapsed().as_secs_f64()
+        );
+        seconds
+    };
+    let warmups: Vec<f64> = (0..options.warmup.max(1))
+        .map(|index| step("warmup", index))
+        .collect();
+    let (counted, kernels) = count_kernels(|| step("timed", 0));
+    let steps: Vec<f64> = std::iter::once(counted)
+        .chain((1..options.steps).map(|index| step("timed", index)))
+        .collect();
+    (warmups, steps, kernels)
 }
 
 /// The kernels of one step (`kernels`), then one more step (`step`, returning its seconds)
