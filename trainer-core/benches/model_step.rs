@@ -114,6 +114,8 @@ fn parse_options() -> Options {
         let cores = std::thread::available_parallelism().map_or(1, |n| n.get());
         options.shards = default_shards(options.backend, cores);
     }
+    // A shard holds at least one sample.
+    options.shards = options.shards.clamp(1, options.batch.max(1));
     options
 }
 
