@@ -479,9 +479,48 @@ impl LocalEvaluation {
     }
 }
 
-/// A free TCP port on loopback (bound then released; fine for local runs and tests).
+/// Where [`free_port`] looks: below Linux's ephemeral range (32768-60999), which sockets
+/// bound to port 0 draw from.
+const HANDED_OUT_PORTS: std::ops::Range<u16> = 20000..32000;
+
+/// A free TCP port on loopback for a process about to be started (bound then released). It
+/// comes from below the ephemeral range, so no socket bound to port 0 meanwhile (a worker's
+/// collective service, another test's process) can take it before its user binds it: a port
+/// handed out from that range once went to another process first. A random start spreads
+/// concurrent callers; where the whole range is taken, any free port.
 pub fn free_port() -> std::io::Result<u16> {
+    use std::hash::{BuildHasher, Hasher};
+    let count = HANDED_OUT_PORTS.end - HANDED_OUT_PORTS.start;
+    let start = std::collections::hash_map::RandomState::new()
+        .build_hasher()
+        .finish()
+        % u64::from(count);
+    let candidates = (0..count).map(|offset| {
+        let index = (start + u64::from(offset)) % u64::from(count);
+        HANDED_OUT_PORTS.start + index as u16
+    });
+    for port in candidates {
+        if std::net::TcpListener::bind(("127.0.0.1", port)).is_ok() {
+            return Ok(port);
+        }
+    }
     Ok(std::net::TcpListener::bind("127.0.0.1:0")?
         .local_addr()?
         .port())
+}
+
+#[cfg(test)]
+mod port_tests {
+    use super::*;
+
+    #[test]
+    fn handed_out_ports_are_free_and_below_the_ephemeral_range() {
+        let ports: Vec<u16> = (0..8).map(|_| free_port().expect("a free port")).collect();
+        for port in &ports {
+            assert!(HANDED_OUT_PORTS.contains(port), "{port}");
+            std::net::TcpListener::bind(("127.0.0.1", *port)).expect("still free");
+        }
+        let distinct: std::collections::BTreeSet<u16> = ports.iter().copied().collect();
+        assert!(distinct.len() > 1, "{ports:?}");
+    }
 }
