@@ -26,6 +26,7 @@ fn help_lists_every_flag_with_its_default() {
             ("--model-config", None),
             ("--collective-timeout-s", Some("120")),
             ("--shutdown-grace-s", Some("10")),
+            ("--kernel-cache", None),
             ("--scratch", None),
             ("--log-format", Some("human")),
             ("--metrics-address", None),
