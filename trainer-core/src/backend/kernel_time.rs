@@ -14,6 +14,8 @@ use burn::cubecl::logging::{
     Duration, LaunchObservation, LaunchObserver, ProfileDuration, TimingMethod, TimingRequest,
 };
 
+use super::kernels::kernel_kind;
+
 /// Where the device time of some work went.
 #[derive(Debug, Clone, Default, PartialEq)]
 pub struct KernelTime {
@@ -60,6 +62,12 @@ impl KernelTime {
         parts.join(";")
     }
 
+    /// Orders `by_kind` largest first, as its readers expect.
+    fn sort_by_time(&mut self) {
+        self.by_kind
+            .sort_by(|a, b| b.1.total_cmp(&a.1).then_with(|| a.0.cmp(&b.0)));
+    }
+
     /// Adds one kernel's device time to the totals.
     fn add(&mut self, kernel: &str, seconds: f64, method: TimingMethod) {
         self.timed += 1;
@@ -72,8 +80,6 @@ impl KernelTime {
         }
     }
 }
-
-use super::kernels::kernel_kind;
 
 /// What the observer collected while installed.
 #[derive(Default)]
@@ -149,8 +155,7 @@ pub fn time_kernels<T>(work: impl FnOnce() -> T) -> (T, KernelTime) {
     if last_end > first_start {
         time.span_s = last_end - first_start;
     }
-    time.by_kind
-        .sort_by(|a, b| b.1.total_cmp(&a.1).then_with(|| a.0.cmp(&b.0)));
+    time.sort_by_time();
     (result, time)
 }
 
@@ -209,7 +214,7 @@ mod tests {
             0.002,
             TimingMethod::Device,
         );
-        time.by_kind.sort_by(|a, b| b.1.total_cmp(&a.1));
+        time.sort_by_time();
         assert_eq!((time.timed, time.method()), (3, "device"));
         assert_eq!(time.top(1), "Matmul:6.0");
         assert_eq!(time.top(5), "Matmul:6.0;reduce_sum:1.0");
