@@ -22,22 +22,31 @@ pub(super) struct StoreRetry {
     until: Option<Instant>,
     /// The first failure of the current outage.
     since: Option<Instant>,
+    /// The job's next step when the store last failed it: the step being computed, or the
+    /// commit after the step before it.
+    failed_at_step: u64,
 }
 
 impl StoreRetry {
-    /// Counts one more failure at `now`; returns the wait it imposes.
-    fn fail(&mut self, now: Instant) -> Duration {
+    /// Counts one more failure at `now`, while the job was at `next_step`; returns the wait
+    /// it imposes.
+    fn fail(&mut self, now: Instant, next_step: u64) -> Duration {
         let backoff = Duration::from_secs(1 << self.failures.min(8)).min(STORE_BACKOFF_MAX);
         self.failures += 1;
         self.until = Some(now + backoff);
         self.since.get_or_insert(now);
+        self.failed_at_step = next_step;
         backoff
     }
 
-    /// The store answered again (a group formed after its failure is training): the outage
-    /// is over, though the back-off stays until a commit proves uploads work too.
-    pub(super) fn answered(&mut self) {
-        self.since = None;
+    /// A group formed after the failure trained up to `next_step`. Once that is past the step
+    /// where the store failed, the store has answered what it refused and the outage is
+    /// over, though the back-off stays until a commit proves uploads work too. Steps re-trained
+    /// before a refused upload prove only that reads work, so they leave the outage showing.
+    pub(super) fn progressed(&mut self, next_step: u64) {
+        if next_step > self.failed_at_step {
+            self.since = None;
+        }
     }
 
     /// How long the store has been failing at `now`, while it is.
@@ -158,7 +167,7 @@ impl JobState {
         if !self.in_running_group(worker, generation) {
             return false;
         }
-        let backoff = self.store_retry.fail(now);
+        let backoff = self.store_retry.fail(now, self.current_step);
         tracing::warn!(
             generation,
             reporter = worker,

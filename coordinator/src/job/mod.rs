@@ -340,14 +340,13 @@ impl JobState {
             return false;
         };
         let world_size = group.members.len();
-        // A step of the running group means its data and its start were read from the store.
-        self.store_retry.answered();
         if let Some(member) = self.members.get_mut(&worker) {
             member.state.finished(phase, report.step);
             member.samples_per_s = report.samples_per_s;
         }
         let loss = report.loss.unwrap_or_default();
         self.current_step = report.step + 1;
+        self.store_retry.progressed(self.current_step);
         self.count_skipped(worker, report);
         let record = self.steps.record(phase, report.step, report.generation);
         record.step_s = record.step_s.max(report.step_s);
