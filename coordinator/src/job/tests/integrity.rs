@@ -178,23 +178,15 @@ fn a_store_outage_shows_in_the_status_for_as_long_as_it_lasts_and_blames_no_one(
 fn a_refused_commit_shows_as_an_outage_while_the_retry_retrains_the_steps_before_it() {
     let mut run = Run::new(false, None);
     let generation = run.assign(0)[0].as_ref().unwrap().generation;
-    let (w0, w1) = (run.workers[0], run.workers[1]);
-    for step in 0..2 {
-        for worker in [w0, w1] {
-            assert!(run.step(worker, Phase::Stage1, step, generation));
-        }
-    }
+    let w0 = run.workers[0];
+    run.all_step(Phase::Stage1, 0..2, generation);
     assert!(
         run.state
             .store_failed(w0, generation, "upload of step 2 refused", run.now)
     );
     run.now += Duration::from_secs(30);
     let generation = run.assign(generation)[0].as_ref().unwrap().generation;
-    for step in 0..2 {
-        for worker in [w0, w1] {
-            assert!(run.step(worker, Phase::Stage1, step, generation));
-        }
-    }
+    run.all_step(Phase::Stage1, 0..2, generation);
     assert_eq!(
         run.state.status(run.now).store_failing,
         Some(Duration::from_secs(30)),

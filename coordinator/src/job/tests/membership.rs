@@ -106,9 +106,7 @@ fn a_failed_final_commit_ends_the_generation_and_the_stage_resumes_from_the_last
     let (w0, w1) = (run.workers[0], run.workers[1]);
     assert!(!run.commit(w0, Phase::Stage1, 2, generation));
     // Both ranks finish the stage's last step; rank 0's upload of the final commit fails.
-    for worker in [w0, w1] {
-        assert!(run.step(worker, Phase::Stage1, 3, generation));
-    }
+    run.all_step(Phase::Stage1, 3..4, generation);
     assert!(
         run.state
             .request_assignment(w1, generation, run.now)

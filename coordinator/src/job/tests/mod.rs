@@ -128,6 +128,19 @@ impl Run {
         };
         self.state.report_step(worker, phase, &report)
     }
+
+    /// Every worker reports each of `steps` of `phase` in `generation`; each report must be
+    /// accepted.
+    fn all_step(&mut self, phase: Phase, steps: std::ops::Range<u64>, generation: u64) {
+        for step in steps {
+            for worker in self.workers.clone() {
+                assert!(
+                    self.step(worker, phase, step, generation),
+                    "step {step} refused"
+                );
+            }
+        }
+    }
 }
 
 /// The training work of `assignment`; panics naming what came instead.
