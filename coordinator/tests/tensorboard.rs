@@ -18,11 +18,7 @@ fn tensorboard_python() -> PathBuf {
     if let Some(python) = std::env::var_os("XFACTOR_TENSORBOARD_PYTHON") {
         return PathBuf::from(python);
     }
-    let cache = std::env::var_os("XDG_CACHE_HOME").map_or_else(
-        || PathBuf::from(std::env::var_os("HOME").expect("HOME")).join(".cache"),
-        PathBuf::from,
-    );
-    cache.join("xfactor-dist/tensorboard-env/bin/python")
+    settings::cache::project_cache().join("tensorboard-env/bin/python")
 }
 
 /// What `read_tensorboard.py` finds under `logdir`.

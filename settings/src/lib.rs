@@ -4,6 +4,7 @@
 //! trainer-core, data and evaluation compute with them. Nothing here does I/O or links a tensor
 //! library, so the control plane can depend on it alone.
 
+pub mod cache;
 pub mod commit;
 pub mod data;
 mod device;

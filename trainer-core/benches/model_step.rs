@@ -196,12 +196,7 @@ fn jax_python() -> Option<std::path::PathBuf> {
     if let Some(python) = std::env::var_os("XFACTOR_JAX_PYTHON") {
         return Some(python.into());
     }
-    let cache = std::env::var_os("XDG_CACHE_HOME")
-        .map(std::path::PathBuf::from)
-        .or_else(|| {
-            std::env::var_os("HOME").map(|home| std::path::Path::new(&home).join(".cache"))
-        })?;
-    let python = cache.join("xfactor-dist/jax-env/bin/python");
+    let python = settings::cache::project_cache().join("jax-env/bin/python");
     python.exists().then_some(python)
 }
 

@@ -263,15 +263,10 @@ fn print_where_to_look(job: &LocalJob, evaluation: Option<&Path>) {
         "curves:      {}/curves/stage1.png, stage2.png (and .svg, .csv)",
         checkpoints.display()
     );
-    let cache = std::env::var_os("XDG_CACHE_HOME").map_or_else(
-        || Path::new(&std::env::var_os("HOME").unwrap_or_default()).join(".cache"),
-        PathBuf::from,
-    );
+    let cache = settings::cache::project_cache();
     println!(
         "tensorboard: {} --logdir {}/tensorboard   (then open http://localhost:6006)",
-        cache
-            .join("xfactor-dist/tensorboard-env/bin/tensorboard")
-            .display(),
+        cache.join("tensorboard-env/bin/tensorboard").display(),
         checkpoints.display()
     );
 }

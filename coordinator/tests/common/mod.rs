@@ -246,11 +246,7 @@ impl Moto {
         if let Some(program) = std::env::var_os("XFACTOR_MOTO_SERVER") {
             return PathBuf::from(program);
         }
-        let cache = std::env::var_os("XDG_CACHE_HOME")
-            .map(PathBuf::from)
-            .or_else(|| std::env::var_os("HOME").map(|home| PathBuf::from(home).join(".cache")))
-            .expect("HOME or XDG_CACHE_HOME must be set to find moto_server");
-        cache.join("xfactor-dist/s3-env/bin/moto_server")
+        settings::cache::project_cache().join("s3-env/bin/moto_server")
     }
 
     /// Starts the server (its log goes to `dir/moto.log`) and waits until it answers. Panics,

@@ -80,15 +80,10 @@ fn settings_file_above(folder: &Path) -> Option<PathBuf> {
     })
 }
 
-/// The folder a process keeps kernels in by default: `xfactor-dist/kernels` in the user's
-/// cache (`$XDG_CACHE_HOME`, else `~/.cache`), else in the system's temporary folder.
+/// The folder a process keeps kernels in by default: `kernels` in the project's folder of the
+/// user's cache ([`settings::cache::project_cache`]).
 pub fn default_kernel_cache() -> PathBuf {
-    let cache = std::env::var_os("XDG_CACHE_HOME")
-        .filter(|value| !value.is_empty())
-        .map(PathBuf::from)
-        .or_else(|| std::env::var_os("HOME").map(|home| Path::new(&home).join(".cache")))
-        .unwrap_or_else(std::env::temp_dir);
-    cache.join("xfactor-dist").join("kernels")
+    settings::cache::project_cache().join("kernels")
 }
 
 #[cfg(test)]
