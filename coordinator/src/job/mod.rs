@@ -24,6 +24,7 @@ mod members;
 mod queries;
 mod records;
 mod steps;
+mod suspension;
 #[cfg(test)]
 mod tests;
 
@@ -123,6 +124,8 @@ pub struct JobState {
     last_tick: Option<Instant>,
     current_step: u64,
     last_loss: f32,
+    /// A requested suspension: its step and who has heard it.
+    suspension: suspension::Suspension,
 }
 
 /// Where this coordinator's worker ids and generation numbers start: its start time in
@@ -181,6 +184,7 @@ impl JobState {
             plan,
             current_step: 0,
             last_loss: f32::NAN,
+            suspension: suspension::Suspension::default(),
         }
     }
 
@@ -315,16 +319,6 @@ impl JobState {
             return Ok(Some(assignments::finish(self.generation)));
         }
         Ok(None)
-    }
-
-    /// Whether a group of workers is training or evaluating now.
-    pub fn group_running(&self) -> bool {
-        self.group.is_some()
-    }
-
-    /// Commits accepted by this coordinator so far.
-    pub fn commit_count(&self) -> usize {
-        self.report.commits.len()
     }
 
     /// Records a finished step of `phase`; returns whether the generation is still current.

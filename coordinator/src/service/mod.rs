@@ -187,22 +187,28 @@ impl CoordinatorService {
         self
     }
 
-    /// Once suspension was asked for: returns when rank 0's commit of the step after it is
-    /// in, when no group is running (nothing to commit), or after [`SUSPEND_LIMIT`] (the last
-    /// commit then stays the resume point).
+    /// Once suspension was asked for: returns when every rank of the group has heard it and
+    /// rank 0's commit of the step it took effect at is in, when no group is running (nothing
+    /// to commit or tell), or after [`SUSPEND_LIMIT`] (the last commit then stays the resume
+    /// point). Stopping before every rank heard would leave one waiting for a coordinator
+    /// that is gone.
     async fn suspended(&self) {
         self.suspending.cancelled().await;
-        let before = self.state.lock().await.commit_count();
-        tracing::warn!("suspending the job: rank 0 commits its next step, then the workers exit");
+        self.state.lock().await.request_suspension();
+        tracing::warn!(
+            "suspending the job: every rank hears it at its next step, rank 0 commits that step, then the workers exit"
+        );
         let started = Instant::now();
         while started.elapsed() < SUSPEND_LIMIT {
             tokio::time::sleep(Duration::from_millis(100)).await;
             let state = self.state.lock().await;
-            if state.commit_count() > before || state.finished() || !state.group_running() {
+            if state.finished() || state.suspension_complete() {
                 return;
             }
         }
-        tracing::warn!("no commit arrived while suspending; the job resumes from its last commit");
+        tracing::warn!(
+            "the suspension was not committed and heard in time; the job resumes from its last commit"
+        );
     }
 
     /// The series this service publishes, for the `/metrics` endpoint.

@@ -121,9 +121,11 @@ impl Coordinator for CoordinatorService {
                 let rank0 = state.is_rank0(report.worker_id);
                 metrics::record_step(&self.metrics, &report, rank0);
             }
+            let suspend = generation_current
+                && state.suspends(report.worker_id, report.generation, report.step);
             Ok(Response::new(StepAck {
                 generation_current,
-                suspend: self.suspending.is_cancelled(),
+                suspend,
             }))
         }
         .instrument(span)

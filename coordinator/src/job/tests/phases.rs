@@ -166,3 +166,49 @@ fn init_weights_start_stage1_and_only_until_its_first_commit() {
         TrainStart::InitWeights("mem://stage1/4".into())
     );
 }
+
+#[test]
+fn a_suspension_ignores_commits_before_its_step_and_completes_when_the_stage_ends() {
+    let mut run = Run::new(false, None);
+    let generation = run.assign(0)[0].as_ref().unwrap().generation;
+    let (w0, w1) = (run.workers[0], run.workers[1]);
+    run.all_step(Phase::Stage1, 0..2, generation);
+    assert!(!run.commit(w0, Phase::Stage1, 2, generation), "mid-stage");
+    assert!(run.step(w0, Phase::Stage1, 2, generation));
+    assert!(!run.state.suspends(w0, generation, 2), "not requested yet");
+    run.state.request_suspension();
+    assert!(run.step(w1, Phase::Stage1, 2, generation));
+    assert!(
+        !run.state.suspends(w1, generation, 2),
+        "rank 0 goes on to step 3, so rank 1 must too"
+    );
+    for worker in [w0, w1] {
+        assert!(!run.state.suspension_complete(), "worker {worker} not told");
+        assert!(run.step(worker, Phase::Stage1, 3, generation));
+        assert!(run.state.suspends(worker, generation, 3));
+    }
+    assert!(
+        !run.state.suspension_complete(),
+        "the commit of step 2 came before the suspension's step"
+    );
+    run.commit(w0, Phase::Stage1, 4, generation);
+    assert!(run.state.suspension_complete());
+}
+
+#[test]
+fn a_suspension_mid_stage_completes_once_rank_0_commits_the_step_every_rank_heard() {
+    let mut run = Run::new(false, None);
+    let generation = run.assign(0)[0].as_ref().unwrap().generation;
+    let (w0, w1) = (run.workers[0], run.workers[1]);
+    assert!(run.step(w0, Phase::Stage1, 0, generation));
+    run.state.request_suspension();
+    assert!(run.step(w1, Phase::Stage1, 0, generation));
+    assert!(!run.state.suspends(w1, generation, 0));
+    run.all_step(Phase::Stage1, 1..2, generation);
+    assert!(run.state.suspends(w1, generation, 1));
+    assert!(!run.state.suspension_complete(), "rank 0 not told");
+    assert!(run.state.suspends(w0, generation, 1));
+    assert!(!run.state.suspension_complete(), "no commit yet");
+    assert!(!run.commit(w0, Phase::Stage1, 2, generation), "mid-stage");
+    assert!(run.state.suspension_complete());
+}
