@@ -16,8 +16,12 @@
 # the paper model's default interval (`checksum_every: auto`), as a job runs, and the
 # `rank0_*` keys split rank 0's step outside the compute and the ring.
 #
-# Then, unscaled and unshaped, the host path at the paper's size (1.22 GB of float32) between
-# two ranks on loopback: copy, local reduction, ring, update, checksum, in seconds and GB/s.
+# Unscaled and unshaped, the host path at the paper's size (1.22 GB of float32) between two
+# ranks on loopback: copy, local reduction, ring, update, checksum, in seconds and GB/s; on
+# one lane first (its copy, upload, update and checksum are what every cell then also counts:
+# `full_size_host_s`, `efficiency_counting_host`), then the gRPC stream, bf16, and the ring
+# over TLS (the stream with the test certificates: what a job with `tls:` runs).
+# Any failed, missing or refused cell fails the benchmark.
 #
 # Usage: sudo -E scripts/bench-scaling.sh [--smoke] [--no-build] [--ranks 2,4,8]
 #            [--links 25,100,400] [--wires f32,bf16] [--steps N] [--skip-host-path]
@@ -54,7 +58,7 @@ done
 if [ "$(id -u)" != 0 ]; then
     echo "bench-scaling: needs root for network namespaces and tc; run: sudo -E $0 $*" >&2
     echo "bench=scaling refused=not_root"
-    exit 0
+    exit 1
 fi
 for tool in ip tc; do
     command -v "$tool" >/dev/null || { echo "bench-scaling: $tool is missing (iproute2)" >&2; exit 2; }
@@ -129,7 +133,36 @@ rank_phases() {
     echo "$out"
 }
 
-# One cell: N ranks, link L Gbit/s, wire W. Prints the cell's line.
+# Fails the benchmark naming what went wrong.
+fail() {
+    echo "bench-scaling: $*" >&2
+    exit 1
+}
+
+# Waits for every pid given; fails naming the rank output of the first that failed.
+wait_ranks() {
+    local label=$1 pid r=0
+    shift
+    for pid in "$@"; do
+        wait "$pid" || fail "$label: rank $r exited with $?: $(tail -5 "$SCRATCH/$label-$r.out" "$SCRATCH/$label-$r.err" 2>/dev/null)"
+        r=$((r + 1))
+    done
+}
+
+# The data-path line of a rank's output; fails when it is missing or a figure is not a
+# positive number.
+rank_line() {
+    local line key value
+    line=$(grep '^bench=data_path' "$1") || fail "no bench=data_path line in $1"
+    for key in step_s ring_s step_auto_s; do
+        value=$(field "$line" "$key")
+        awk -v v="$value" 'BEGIN { exit !(v + 0 > 0) }' || fail "$1: $key=$value is not a positive figure"
+    done
+    echo "$line"
+}
+
+# One cell: N ranks, link L Gbit/s, wire W. Prints the cell's line; fails when a rank fails
+# or a figure is missing.
 cell() {
     local n=$1 link=$2 wire=$3
     local scale chunk peers="" line before after busy
@@ -141,58 +174,79 @@ cell() {
     for r in $(seq 0 $((n - 1))); do
         ip netns exec "xfb$r" "$WORKER" path-bench --rank "$r" --peers "$peers" \
             --scale "$scale" --compute-s "$COMPUTE_S" --steps "$STEPS" --wire "$wire" \
-            --chunk-values "$chunk" --layout-file "$LAYOUT" >"$SCRATCH/rank-$r.out" &
+            --chunk-values "$chunk" --layout-file "$LAYOUT" >"$SCRATCH/rank-$r.out" 2>"$SCRATCH/rank-$r.err" &
         pids+=($!)
     done
-    for pid in "${pids[@]}"; do wait "$pid"; done
+    wait_ranks rank "${pids[@]}"
     after=$(core_jiffies)
     busy=$(busiest_core "$before" "$after")
-    line=$(grep '^bench=data_path' "$SCRATCH/rank-0.out")
+    line=$(rank_line "$SCRATCH/rank-0.out") || exit 1
     awk -v line="$line" -v n="$n" -v link="$link" -v wire="$wire" -v busy="$busy" \
         -v sim="$SIM_MBIT" -v delay="$DELAY_US" -v compute="$COMPUTE_S" -v values="$PAPER_VALUES" \
         -v step="$(field "$line" step_s)" -v ring="$(field "$line" ring_s)" -v phases="$(rank_phases "$line")" \
-        -v step_auto="$(field "$line" step_auto_s)" -v every="$(field "$line" checksum_every_auto)" 'BEGIN {
+        -v step_auto="$(field "$line" step_auto_s)" -v every="$(field "$line" checksum_every_auto)" \
+        -v host="$FULL_HOST_S" 'BEGIN {
         width = (wire == "bf16") ? 2 : 4
         bytes = values * width
         model_ring = 2 * (n - 1) / n * bytes / (0.9 * link * 1e9 / 8) + 2 * (n - 1) * delay * 1e-6
         model = compute / (compute + model_ring)
         measured = compute / step
         refused = (busy > 0.9) ? "core_saturated" : "no"
-        printf "bench=scaling ranks=%d link_gbit=%d wire=%s shaped_mbit=%d delay_us=%d payload_real_gb=%.3f step_s=%.4f ring_s=%.4f efficiency=%.4f model_ring_s=%.4f model_efficiency=%.4f deviation=%.4f busiest_core=%s refused=%s checksum_every_auto=%d efficiency_auto=%.4f %s\n", n, link, wire, sim, delay, bytes / 1e9, step, ring, measured, model_ring, model, (measured - model) / model, busy, refused, every, compute / step_auto, phases
+        printf "bench=scaling ranks=%d link_gbit=%d wire=%s shaped_mbit=%d delay_us=%d payload_real_gb=%.3f step_s=%.4f ring_s=%.4f efficiency=%.4f model_ring_s=%.4f model_efficiency=%.4f deviation=%.4f busiest_core=%s refused=%s checksum_every_auto=%d efficiency_auto=%.4f full_size_host_s=%.4f efficiency_counting_host=%.4f %s\n", n, link, wire, sim, delay, bytes / 1e9, step, ring, measured, model_ring, model, (measured - model) / model, busy, refused, every, compute / step_auto, host, compute / (step_auto + host), phases
+        if (refused != "no") exit 3
     }'
 }
+
+# Unscaled and unshaped: two ranks on loopback with the paper's 1.22 GB and no compute, one
+# I/O thread each (the worker daemon's), with wire $1 on $2 lanes (0: the gRPC stream, as
+# the peer), and with $3 = tls the ring over TLS (the gRPC stream with the test certificates
+# of proto/testdata/tls: what a job with `tls:` runs).
+host_path() {
+    local peers="127.0.0.1:7201,127.0.0.1:7202" pids=() tls=()
+    if [ "${3:-}" = tls ]; then tls=(--tls-dir proto/testdata/tls); fi
+    for r in 0 1; do
+        "$WORKER" path-bench --rank "$r" --peers "$peers" --compute-s 0 --steps 3 \
+            --wire "$1" --lanes "$2" "${tls[@]}" --layout-file "$LAYOUT" >"$SCRATCH/host-$r.out" 2>"$SCRATCH/host-$r.err" &
+        pids+=($!)
+    done
+    wait_ranks host "${pids[@]}"
+    rank_line "$SCRATCH/host-0.out" | sed 's/^bench=data_path/bench=host_path/'
+}
+
+# What the scaled cells leave out: at full size a rank's copy, upload, update and checksum
+# (spread over the default interval) cost seconds, not the milliseconds of a scaled cell. The
+# float32 host path on one lane measures them first; each cell then also prints them
+# (`full_size_host_s`) and its efficiency once they are counted (`efficiency_counting_host`).
+FULL_HOST_S=0
+if [ "$HOST_PATH" = 1 ]; then
+    FIRST_HOST=$(host_path f32 1)
+    echo "$FIRST_HOST"
+    FULL_HOST_S=$(awk -v line="$FIRST_HOST" 'BEGIN {
+        n = split(line, pairs, " ")
+        for (i = 1; i <= n; i++) { split(pairs[i], kv, "="); v[kv[1]] = kv[2] }
+        printf "%.4f", v["copy_s"] + v["upload_s"] + v["update_s"] + v["checksum_s"] / v["checksum_every_auto"]
+    }')
+fi
 
 setup_network
 shape "$SIM_MBIT" "$DELAY_US"
 echo "bench=scaling_config ranks=$RANKS links_gbit=$LINKS wires=$WIRES steps=$STEPS shaper=$SHAPER shaped_mbit=$SIM_MBIT delay_us=$DELAY_US compute_s=$COMPUTE_S cores=$(nproc)"
 # The calibration cell first: N = 2 at 100 Gbit/s in float32.
-echo "calibration: $(cell 2 100 f32)"
+CELL=$(cell 2 100 f32) || fail "the calibration cell failed or was refused: $CELL"
+echo "calibration: $CELL"
 for n in ${RANKS//,/ }; do
     for link in ${LINKS//,/ }; do
         for wire in ${WIRES//,/ }; do
             if [ "$n" = 2 ] && [ "$link" = 100 ] && [ "$wire" = f32 ]; then continue; fi
-            cell "$n" "$link" "$wire"
+            CELL=$(cell "$n" "$link" "$wire") || fail "cell ranks=$n link_gbit=$link wire=$wire failed or was refused: $CELL"
+            echo "$CELL"
         done
     done
 done
 
-# Unscaled and unshaped: two ranks on loopback with the paper's 1.22 GB and no compute, one
-# I/O thread each (the worker daemon's), with wire $1 on $2 lanes (0: the gRPC stream, the
-# ring's transport under TLS and before lanes, as the peer).
-host_path() {
-    local peers="127.0.0.1:7201,127.0.0.1:7202" pids=()
-    for r in 0 1; do
-        "$WORKER" path-bench --rank "$r" --peers "$peers" --compute-s 0 --steps 3 \
-            --wire "$1" --lanes "$2" --layout-file "$LAYOUT" >"$SCRATCH/host-$r.out" &
-        pids+=($!)
-    done
-    for pid in "${pids[@]}"; do wait "$pid"; done
-    sed 's/^bench=data_path/bench=host_path/' "$SCRATCH/host-0.out"
-}
-
 if [ "$HOST_PATH" = 1 ]; then
-    for wire in f32 bf16; do
-        host_path "$wire" 0
-        host_path "$wire" 1
-    done
+    host_path f32 0
+    host_path bf16 0
+    host_path bf16 1
+    host_path f32 0 tls
 fi

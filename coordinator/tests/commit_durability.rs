@@ -103,6 +103,7 @@ async fn register_and_assign(client: &mut Client) -> (RegisterReply, Assignment)
             collective_address: "127.0.0.1:1".into(),
             device: Some(proto::v1::Device::Cpu as i32),
             expected_model: None,
+            ring_tls: false,
         })
         .await
         .unwrap()

@@ -1,7 +1,8 @@
 //! Faults against what a job has committed and who may change it, injected into real
 //! coordinator and worker processes on loopback: a newest commit whose files changed, a `COMMIT.json` naming `../x` or
 //! `/etc/x`, Leave and commit requests forged in a worker's name, a replica that keeps
-//! diverging, and rank 0 killed while its checkpoint uploads. Each prints `fault=... key=value`
+//! diverging (also at a commit step off the checksum interval), and rank 0 killed while its
+//! checkpoint uploads. Each prints `fault=... key=value`
 //! figures.
 
 mod common;
@@ -182,20 +183,27 @@ fn leave_and_commit_forged_in_a_workers_name_are_refused_and_the_job_goes_on() {
     );
 }
 
-#[test]
-fn a_replica_that_keeps_diverging_is_rolled_back_then_excluded_and_the_job_finishes() {
-    let dir = tempfile::tempdir().unwrap();
-    let mut job = small_job(dir.path(), 3);
+/// Three workers, 24 steps of stage 1 committed every 4; worker `drifting`'s accelerator
+/// goes bad at step `from` (counted from 0): from then on its replica drifts each step.
+fn one_of_three_drifting(
+    dir: &std::path::Path,
+    drifting: usize,
+    from: u64,
+) -> coordinator::local::LocalJob {
+    let mut job = small_job(dir, 3);
     job.global_batch = 6;
     job.micro_batch = 2;
     job.stage1_steps = 24;
     job.checkpoint_every = 4;
-    // Worker 2's accelerator goes bad at step 9: from then on its replica drifts each step.
-    job.worker_args = vec![
-        Vec::new(),
-        Vec::new(),
-        vec!["--drill-diverge-from-step".into(), "9".into()],
-    ];
+    job.worker_args = vec![Vec::new(); 3];
+    job.worker_args[drifting] = vec!["--drill-diverge-from-step".into(), from.to_string()];
+    job
+}
+
+#[test]
+fn a_replica_that_keeps_diverging_is_rolled_back_then_excluded_and_the_job_finishes() {
+    let dir = tempfile::tempdir().unwrap();
+    let job = one_of_three_drifting(dir.path(), 2, 9);
     let started = Instant::now();
     let running = Running::start(job);
     let report = running.finish(Duration::from_secs(400));
@@ -216,10 +224,77 @@ fn a_replica_that_keeps_diverging_is_rolled_back_then_excluded_and_the_job_finis
         !excluded.contains("local-0") && !excluded.contains("local-1"),
         "{report:#}"
     );
-    // Every commit holds weights all good replicas agreed on: none after the drift began
-    // came from a group the drifting worker was in, which the rollbacks prove by the job
-    // finishing with its final step.
+    // Every commit holds weights every replica of its group agreed on.
+    let unverified = unverified_commits(&report);
+    assert!(
+        unverified.is_empty(),
+        "unverified: {unverified:?}\n{report:#}"
+    );
     assert_eq!(commits(&report, 1).last().unwrap().0, 24, "{report:#}");
+}
+
+#[test]
+fn a_divergence_at_a_commit_step_off_the_checksum_interval_is_never_committed() {
+    let dir = tempfile::tempdir().unwrap();
+    // Worker 0's accelerator goes bad at its 8th step (index 7), a commit step. Whichever
+    // rank it has, the group's commit of step 8 would hold parameters that not every replica
+    // holds.
+    let mut job = one_of_three_drifting(dir.path(), 0, 7);
+    // Checksums only where the commit schedule commits: without verified commits, the
+    // divergence at step 8 would be committed unseen.
+    job.checksum_every = Some(1000);
+    let running = Running::start(job);
+    let report = running.finish(Duration::from_secs(400));
+    let mismatches = report["checksum_mismatches"].as_array().unwrap();
+    let unverified = unverified_commits(&report);
+    println!(
+        "fault=diverge_at_commit_step mismatches={} restarts={} exclusions={} commits={} unverified_commits={}",
+        mismatches.len(),
+        report["restarts"],
+        report["exclusions"],
+        report["commits"].as_array().map_or(0, Vec::len),
+        unverified.len()
+    );
+    assert_eq!(report["outcome"], "finished", "{report:#}");
+    assert!(!mismatches.is_empty(), "the drill fired: {report:#}");
+    let excluded = report["exclusions"].to_string();
+    assert!(
+        !excluded.contains("local-1") && !excluded.contains("local-2"),
+        "a refused commit blames no one but the odd replica: {report:#}"
+    );
+    assert!(
+        unverified.is_empty(),
+        "unverified: {unverified:?}\n{report:#}"
+    );
+    assert_eq!(commits(&report, 1).last().unwrap().0, 24, "{report:#}");
+}
+
+/// Every training commit whose step no full set of equal checksums covers: its record (the
+/// step before, in the generation its location names) must hold one checksum per rank, all
+/// equal.
+fn unverified_commits(report: &serde_json::Value) -> Vec<String> {
+    let steps = report["steps"].as_array().unwrap();
+    report["commits"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|c| c["stage"] == 1 || c["stage"] == 2)
+        .filter(|c| {
+            let location = c["location"].as_str().unwrap();
+            let generation: u64 = location.rsplit("-g").next().unwrap().parse().unwrap();
+            let step = c["step"].as_u64().unwrap() - 1;
+            !steps.iter().any(|r| {
+                let checksums: Vec<&serde_json::Value> =
+                    r["checksums"].as_object().unwrap().values().collect();
+                r["stage"] == c["stage"]
+                    && r["step"] == step
+                    && r["generation"] == generation
+                    && checksums.len() as u64 == r["world_size"].as_u64().unwrap()
+                    && checksums.windows(2).all(|pair| pair[0] == pair[1])
+            })
+        })
+        .map(|c| c.to_string())
+        .collect()
 }
 
 /// The text of worker `index`'s log.

@@ -46,6 +46,7 @@ fn request(protocol: u32, model: Option<&serde_json::Value>) -> RegisterRequest 
         collective_address: "127.0.0.1:1".into(),
         device: Some(proto::v1::Device::Cpu as i32),
         expected_model: model,
+        ring_tls: false,
     }
 }
 
@@ -152,6 +153,14 @@ async fn registration_refusals(client: &mut Client, model: &serde_json::Value) {
         differs.message().contains("width: job 32 vs worker 64"),
         "{differs:?}"
     );
+
+    let ring_tls = RegisterRequest {
+        ring_tls: true,
+        ..request(proto::PROTOCOL_VERSION, None)
+    };
+    let mixed = client.register(ring_tls).await.unwrap_err();
+    assert_eq!(mixed.code(), tonic::Code::FailedPrecondition);
+    assert!(mixed.message().contains("without TLS"), "{mixed:?}");
 }
 
 /// A second registration holds the job token but not the `accepted` worker's session: it can
@@ -285,6 +294,20 @@ async fn tls_round_trip_with_a_test_certificate() {
     let mut client = client_with(channel.clone(), "right-token");
     let status = client.status(StatusRequest {}).await.unwrap().into_inner();
     assert_eq!(status.job_name, "rpc-test");
+    let lanes_only = client
+        .register(request(proto::PROTOCOL_VERSION, None))
+        .await
+        .unwrap_err();
+    assert_eq!(lanes_only.code(), tonic::Code::FailedPrecondition);
+    assert!(
+        lanes_only.message().contains("--tls-cert and --tls-key"),
+        "{lanes_only:?}"
+    );
+    let with_certificate = RegisterRequest {
+        ring_tls: true,
+        ..request(proto::PROTOCOL_VERSION, None)
+    };
+    client.register(with_certificate).await.unwrap();
     let mut wrong = client_with(channel, "guessed");
     let refused = wrong.status(StatusRequest {}).await.unwrap_err();
     assert_eq!(refused.code(), tonic::Code::Unauthenticated);

@@ -8,6 +8,7 @@ use settings::work::{FailureCause, GenerationFailure};
 
 use crate::checkpoints::{CorruptCheckpoint, TransferError};
 use crate::collective::CollectiveError;
+use crate::commits::CommitError;
 use crate::context::GenerationEnded;
 use crate::device::DeviceMissing;
 
@@ -20,13 +21,19 @@ pub fn report(error: &anyhow::Error) -> GenerationFailure {
 }
 
 /// Whether the coordinator ended the generation under this worker (a cancelled all-reduce, a
-/// step it no longer acknowledged): then nothing in the chain is this worker's fault.
+/// step it no longer acknowledged, a commit it refused: a stale generation, or checksums that
+/// did not verify, for which it rolls the group back itself): then nothing in the chain is
+/// this worker's fault.
 pub fn ended_by_coordinator(error: &anyhow::Error) -> bool {
     error.chain().any(|link| {
         link.downcast_ref::<GenerationEnded>().is_some()
             || matches!(
                 link.downcast_ref::<CollectiveError>(),
                 Some(CollectiveError::Cancelled)
+            )
+            || matches!(
+                link.downcast_ref::<CommitError>(),
+                Some(CommitError::Refused { .. })
             )
     })
 }
@@ -94,7 +101,6 @@ mod tests {
     use anyhow::Context;
 
     use super::*;
-    use crate::commits::CommitError;
 
     fn store_error() -> StoreError {
         StoreError::NotFound {
@@ -136,6 +142,15 @@ mod tests {
         assert!(!ended_by_coordinator(&own));
         let peer = anyhow::Error::new(CollectiveError::PeerGone { rank: 1 });
         assert!(!ended_by_coordinator(&peer));
+        let refused = anyhow::Error::new(CommitError::Refused {
+            location: "s3://bucket/job/stage1/step-00000008-g1".into(),
+            reason: "commit of stage 1 step 8 refused: the replicas' checksums differ".into(),
+        })
+        .context("checkpoint of step 8");
+        assert!(
+            ended_by_coordinator(&refused),
+            "the coordinator rolls back itself"
+        );
     }
 
     #[test]

@@ -103,6 +103,10 @@ pub async fn register(
         collective_address: address.to_string(),
         device: options.device.map(|device| device_to_wire(device) as i32),
         expected_model: options.expected_model_config.as_ref().map(Into::into),
+        ring_tls: options
+            .tls
+            .as_ref()
+            .is_some_and(|tls| tls.identity.is_some()),
     };
     // A coordinator coming up (or a connection cut) answers as the long poll's do: waited out
     // for as long as `connect` waits; a refusal of the worker itself ends it.

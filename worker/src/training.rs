@@ -41,6 +41,7 @@ pub fn train_generation(
     let timed = Timed::new(&source);
     let checksums = ChecksumPlan {
         every: work.checksum_every,
+        commit_every: work.checkpoint_every,
         total_steps: work.total_steps,
     };
     let mut path = DataPath::new(ring, checksums, context.options.drill_diverge_from_step);
@@ -83,6 +84,9 @@ pub fn train_generation(
             loader_queue: source.queued(),
         };
         let ack = run.report(&account)?;
+        if ack.checksum_next {
+            path.checksum_next_step();
+        }
         if let Some(ending) =
             run.after_ack(&ack, done, |dir| replicas[0].trainer.save_checkpoint(dir))?
         {

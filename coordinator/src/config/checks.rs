@@ -146,6 +146,16 @@ pub enum RuleViolation {
         /// Where the key is.
         at: AtLine,
     },
+    /// The ring on its gRPC stream without TLS: the stream presents the job token and the
+    /// ring secret, which would cross the network in the clear (lanes prove the secret
+    /// without sending it).
+    #[error(
+        "workers.allreduce_lanes: 0 (the gRPC stream) needs `tls:`, since the stream presents the job token and the ring's secret; without TLS use 1 or more lanes, which prove the secret without sending it{at}"
+    )]
+    StreamWithoutTls {
+        /// Where the key is.
+        at: AtLine,
+    },
     /// More steps than one stage may have.
     #[error("{stage}.steps: expected at most {max}, found {steps}{at}", max = MAX_STEPS)]
     TooManySteps {
@@ -357,6 +367,11 @@ impl ClusterConfig {
         if workers.allreduce_lanes > settings::work::MAX_RING_LANES {
             return Err(RuleViolation::TooManyLanes {
                 lanes: workers.allreduce_lanes,
+                at: at(&["workers", "allreduce_lanes"]),
+            });
+        }
+        if workers.allreduce_lanes == 0 && self.tls.is_none() {
+            return Err(RuleViolation::StreamWithoutTls {
                 at: at(&["workers", "allreduce_lanes"]),
             });
         }

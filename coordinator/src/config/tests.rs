@@ -403,6 +403,11 @@ fn the_data_path_settings_default_to_auto_checksums_and_a_float32_wire() {
         too_many.contains("workers.allreduce_lanes") && too_many.contains("at most 64"),
         "{too_many}"
     );
+    let in_the_clear = error_of(&format!("{GOOD}workers:\n  allreduce_lanes: 0\n"));
+    assert!(
+        in_the_clear.contains("workers.allreduce_lanes") && in_the_clear.contains("needs `tls:`"),
+        "{in_the_clear}"
+    );
     let wire = error_of(&format!("{GOOD}workers:\n  allreduce_wire: fp8\n"));
     assert!(
         wire.contains("workers.allreduce_wire") && wire.contains("line 26"),

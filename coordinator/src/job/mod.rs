@@ -27,9 +27,11 @@ mod steps;
 mod suspension;
 #[cfg(test)]
 mod tests;
+mod verified;
 
 pub use queries::{JobStatus, WorkerSummary};
 pub use records::{Commit, Durable, GenerationStart, Report, StepRecord};
+pub use suspension::SuspendAnswer;
 
 /// How many skipped-frame examples the report keeps.
 const SKIPPED_EXAMPLES: usize = 8;
@@ -92,6 +94,32 @@ pub enum Refusal {
         commit: Phase,
         /// The job's.
         job: Phase,
+    },
+    /// Not every rank's parameter checksum for the committed step has arrived (see
+    /// `verified.rs`).
+    #[error(
+        "commit of {phase} step {step} not verified: no parameter checksum from rank(s) {missing:?}"
+    )]
+    Unverified {
+        /// The commit's phase.
+        phase: Phase,
+        /// Steps done at the commit.
+        step: u64,
+        /// The ranks whose checksums are missing.
+        missing: Vec<u32>,
+    },
+    /// The ranks' parameter checksums for the committed step disagree: a replica diverged,
+    /// and the group rolls back to the last commit.
+    #[error(
+        "commit of {phase} step {step} refused: the replicas' parameter checksums differ {checksums:08x?}"
+    )]
+    ChecksumsDiffer {
+        /// The commit's phase.
+        phase: Phase,
+        /// Steps done at the commit.
+        step: u64,
+        /// Each rank's checksum.
+        checksums: BTreeMap<u32, u32>,
     },
 }
 
@@ -395,16 +423,18 @@ impl JobState {
         Ok(durable)
     }
 
-    /// Why `worker` may not commit `commit` in `generation`, if it may not.
-    fn check_commit(&self, worker: u64, commit: &Commit, generation: u64) -> Result<(), Refusal> {
-        if !self.is_current(generation) {
+    /// Why `worker` may not commit `commit` in `generation`, if it may not: a stale
+    /// generation, a stranger, another phase, or parameters not every replica vouched for.
+    pub(crate) fn check_commit(
+        &self,
+        worker: u64,
+        commit: &Commit,
+        generation: u64,
+    ) -> Result<(), Refusal> {
+        let Some(group) = self.group.as_ref().filter(|g| g.generation == generation) else {
             return Err(Refusal::StaleGeneration(generation));
-        }
-        if !self
-            .group
-            .as_ref()
-            .is_some_and(|g| g.members.contains(&worker))
-        {
+        };
+        if !group.members.contains(&worker) {
             return Err(Refusal::NotInGroup(worker));
         }
         if commit.phase != self.durable.phase {
@@ -413,7 +443,7 @@ impl JobState {
                 job: self.durable.phase,
             });
         }
-        Ok(())
+        self.check_verified(commit, generation, group.members.len())
     }
 
     /// Accepts a verified checkpoint commit from the current group; returns whether its phase

@@ -111,6 +111,12 @@ impl StepLog {
         &mut self.records[position]
     }
 
+    /// The record of `step` of `phase` in `generation`, if it is still in memory.
+    pub fn get(&self, phase: Phase, step: u64, generation: u64) -> Option<&StepRecord> {
+        let position = self.index.get(&(phase, step, generation))?;
+        self.records.get(*position)
+    }
+
     /// Records not handed out yet, oldest first: every one but the newest two, which may still
     /// gain other ranks' reports (a rank finishes step `s + 1` only after every rank finished
     /// `s`, in the all-reduce, but a report can be late by a step), or all of them once the

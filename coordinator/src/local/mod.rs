@@ -89,6 +89,8 @@ pub struct LocalJob {
     pub device: DeviceChoice,
     /// How the ring carries gradients (`f32` by default; written to the YAML only when not).
     pub allreduce_wire: WireFormat,
+    /// Steps between parameter checksums (`None`: `auto`, every step for the small models).
+    pub checksum_every: Option<u64>,
     /// Store settings as environment variables (`AWS_ENDPOINT`, `AWS_ALLOW_HTTP`, ...): given
     /// to the coordinator and worker processes, and used by the harness's own store access.
     pub store_env: Vec<(String, String)>,
@@ -131,6 +133,7 @@ impl LocalJob {
             evaluation: LocalEvaluation::default(),
             device: DeviceChoice::Cpu,
             allreduce_wire: WireFormat::F32,
+            checksum_every: None,
         }
     }
 
@@ -340,6 +343,9 @@ impl LocalJob {
         );
         if self.allreduce_wire != WireFormat::F32 {
             let _ = writeln!(yaml, "  allreduce_wire: {}", self.allreduce_wire.name());
+        }
+        if let Some(every) = self.checksum_every {
+            let _ = writeln!(yaml, "  checksum_every: {every}");
         }
         yaml
     }

@@ -18,8 +18,12 @@ use tracing::Instrument;
 
 use super::CoordinatorService;
 use super::store::{DurableWriteError, chain, verify, write_durable, write_durable_held};
-use crate::job::{Commit, Refusal};
+use crate::job::{Commit, Refusal, SuspendAnswer};
 use crate::metrics;
+
+/// How long a commit waits for its step's checksums from the other ranks: they finished the
+/// same all-reduce as rank 0, so only their hashing and their report are still to come.
+const CHECKSUM_WAIT: Duration = Duration::from_secs(30);
 
 /// A request whose typed fields do not convert.
 fn malformed(error: ConvertError) -> Status {
@@ -32,9 +36,11 @@ fn refused(refusal: Refusal) -> Status {
         Refusal::UnknownWorker(_) | Refusal::LostWorker(_) => {
             Status::not_found(refusal.to_string())
         }
-        Refusal::StaleGeneration(_) | Refusal::NotInGroup(_) | Refusal::WrongPhase { .. } => {
-            Status::failed_precondition(refusal.to_string())
-        }
+        Refusal::StaleGeneration(_)
+        | Refusal::NotInGroup(_)
+        | Refusal::WrongPhase { .. }
+        | Refusal::Unverified { .. }
+        | Refusal::ChecksumsDiffer { .. } => Status::failed_precondition(refusal.to_string()),
     }
 }
 
@@ -121,11 +127,15 @@ impl Coordinator for CoordinatorService {
                 let rank0 = state.is_rank0(report.worker_id);
                 metrics::record_step(&self.metrics, &report, rank0);
             }
-            let suspend = generation_current
-                && state.suspends(report.worker_id, report.generation, report.step);
+            let answer = if generation_current {
+                state.suspends(report.worker_id, report.generation, report.step)
+            } else {
+                SuspendAnswer::Continue
+            };
             Ok(Response::new(StepAck {
                 generation_current,
-                suspend,
+                suspend: answer == SuspendAnswer::Suspend,
+                checksum_next: answer == SuspendAnswer::ChecksumNext,
             }))
         }
         .instrument(span)
@@ -243,6 +253,7 @@ impl CoordinatorService {
             )));
         }
         let mut state = self.state.lock().await;
+        check_ring_tls(state.plan().config.tls.is_some(), request.ring_tls)?;
         if let Some(expected) = &request.expected_model {
             let differences = differing_fields(&state.plan().model, &XFactorConfig::from(expected));
             if !differences.is_empty() {
@@ -306,6 +317,36 @@ impl CoordinatorService {
         }
     }
 
+    /// Waits until every rank's parameter checksum for `commit`'s step is in, or for
+    /// [`CHECKSUM_WAIT`]: rank 0 commits right after its own report, and its peers' reports
+    /// of the same step may still be on their way. What the wait ends on is decided again
+    /// when the commit is recorded, which refuses it when checksums are still missing.
+    async fn await_checksums(
+        &self,
+        worker: u64,
+        commit: &Commit,
+        generation: u64,
+    ) -> Result<(), Status> {
+        let deadline = Instant::now() + CHECKSUM_WAIT;
+        loop {
+            let notified = self.changed.notified();
+            let check = self
+                .state
+                .lock()
+                .await
+                .check_commit(worker, commit, generation);
+            if !matches!(check, Err(Refusal::Unverified { .. })) || Instant::now() >= deadline {
+                return Ok(());
+            }
+            tokio::select! {
+                _ = tokio::time::timeout(Duration::from_millis(50), notified) => {}
+                () = self.stopping.cancelled() => {
+                    return Err(Status::unavailable("the coordinator is stopping; ask again once it is back"));
+                }
+            }
+        }
+    }
+
     /// Records a verified commit: `job.json` is written first, with the commit in it, and
     /// the job's memory changes only once that write succeeded, so memory never holds a
     /// commit the store does not. The lock on `job.json`'s version is held throughout, so no
@@ -328,12 +369,18 @@ impl CoordinatorService {
             step: commit.step,
             location: commit.location,
         };
+        self.await_checksums(worker, &commit, generation).await?;
         let mut version = self.durable_version.lock().await;
-        let after = self
-            .state
-            .lock()
-            .await
-            .durable_after_commit(worker, &commit, generation);
+        let after = {
+            let mut state = self.state.lock().await;
+            let after = state.durable_after_commit(worker, &commit, generation);
+            if let Err(refusal) = &after
+                && state.roll_back_refused(refusal, generation, Instant::now())
+            {
+                self.changed.notify_waiters();
+            }
+            after
+        };
         let after = match after {
             Ok(after) => after,
             Err(refusal) => return refuse(refusal.to_string()),
@@ -367,6 +414,20 @@ impl CoordinatorService {
             accepted: true,
             reason: String::new(),
         }))
+    }
+}
+
+/// Refuses a worker whose ring would not match the job's: with `tls:`, every ring runs over
+/// TLS, so a worker must bring its certificate; without, every ring runs on lanes.
+fn check_ring_tls(job_tls: bool, worker_ring_tls: bool) -> Result<(), Status> {
+    match (job_tls, worker_ring_tls) {
+        (true, false) => Err(Status::failed_precondition(
+            "this job runs TLS (`tls:` in its YAML), so its ring runs over TLS too: start the worker with --tls-cert and --tls-key beside --tls-ca",
+        )),
+        (false, true) => Err(Status::failed_precondition(
+            "this job runs without TLS (no `tls:` in its YAML), so its ring runs on lanes: start the worker without --tls-cert and --tls-key, or give the job `tls:`",
+        )),
+        _ => Ok(()),
     }
 }
 

@@ -7,7 +7,7 @@ use std::time::Duration;
 
 use tokio_util::sync::CancellationToken;
 
-use crate::collective::{CollectiveService, Link, Ring, RingKeys, spawn_server};
+use crate::collective::{CollectiveService, Link, PeerTls, Ring, RingKeys, spawn_server};
 
 pub mod path;
 
@@ -39,6 +39,11 @@ pub struct RankArgs {
         value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(0..=crate::collective::MAX_LANES as u64)
     )]
     pub lanes: usize,
+    /// Runs the ring over TLS (the gRPC stream, as a job with `tls:` does) with the
+    /// certificate `server.pem`, its key `server.key` and the CA `ca.pem` in this folder,
+    /// valid for `localhost`
+    #[arg(long, value_name = "DIR")]
+    pub tls_dir: Option<std::path::PathBuf>,
 }
 
 impl RankArgs {
@@ -57,6 +62,18 @@ impl RankArgs {
             .build()?)
     }
 
+    /// The ring's TLS from `--tls-dir`, if given.
+    fn peer_tls(&self) -> anyhow::Result<Option<PeerTls>> {
+        let Some(dir) = &self.tls_dir else {
+            return Ok(None);
+        };
+        Ok(Some(PeerTls {
+            server: proto::tls::server_config(&dir.join("server.pem"), &dir.join("server.key"))?,
+            ca: dir.join("ca.pem"),
+            domain: Some("localhost".into()),
+        }))
+    }
+
     /// Serves this rank's Collective service and joins the benchmark's ring (generation 1);
     /// every rank derives the same keys, where a job's come from the coordinator.
     async fn join(&self) -> anyhow::Result<Ring> {
@@ -67,7 +84,7 @@ impl RankArgs {
         let link = Link {
             token: BENCH_TOKEN.into(),
             timeout: Duration::from_secs(60),
-            tls: None,
+            tls: self.peer_tls()?,
             lanes: self.lanes,
         };
         spawn_server(listener, service, &link)?;

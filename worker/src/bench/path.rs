@@ -155,6 +155,7 @@ pub fn run_rank(args: &PathBenchArgs) -> anyhow::Result<()> {
     }
     let plan = ChecksumPlan {
         every: settings::work::ChecksumEvery::Steps(args.checksum_every),
+        commit_every: u64::MAX,
         total_steps: u64::MAX,
     };
     let mut path = DataPath::new(ring.with_wire(args.wire), plan, None);
@@ -241,7 +242,7 @@ fn summary(
     let bytes = parameters as f64 * 4.0;
     let gb = |seconds: f64| bytes / 1e9 / seconds.max(1e-12);
     format!(
-        "ranks={} model={} scale={} replicas={} wire={} lanes={} params={parameters} payload_mb={:.3} \
+        "ranks={} model={} scale={} replicas={} wire={} lanes={} tls={} params={parameters} payload_mb={:.3} \
          compute_s={:.3} steps={} step_s={step_s:.4} copy_s={copy_s:.4} copy_gbs={:.2} \
          local_reduce_s={local_reduce_s:.4} ring_s={ring_s:.4} ring_algbw_gbs={:.3} \
          upload_s={upload_s:.4} upload_gbs={:.2} update_s={update_s:.4} \
@@ -254,6 +255,7 @@ fn summary(
         args.replicas,
         args.wire.name(),
         args.ring.lanes,
+        args.ring.tls_dir.is_some(),
         bytes / 1e6,
         args.compute_s,
         steps.len(),

@@ -5,8 +5,9 @@
 //! a gigabyte a second per core. A lane writes each chunk straight from the buffer to its
 //! socket and reads it straight into the sum's place (a kept value) or into one staging buffer
 //! it is added from, so the kernel's two copies are the only ones. The handshake and every
-//! chunk's header are the proto's messages (`LaneHello`, `LaneAnswer`, `LaneChunk`), each
-//! preceded by its length.
+//! chunk's header are the proto's messages, each preceded by its length; the connection's
+//! opening, where both sides prove that they hold the ring's secret without sending it, is
+//! `opening.rs`.
 //!
 //! One lane is one thread and one connection each way, driven by a single loop that writes
 //! whatever its right neighbour can take and reads whatever its left neighbour sent, so it
@@ -17,117 +18,18 @@
 use std::time::Instant;
 
 use prost::Message;
-use proto::v1::{LaneAnswer, LaneChunk, LaneHello};
-use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use proto::v1::LaneChunk;
 use tokio::net::TcpStream;
 use tokio_util::sync::CancellationToken;
 
 use super::CollectiveError;
+use super::core::{Place, check_place, left_of, right_of, take_in};
+use super::opening::framed;
 use super::schedule::{Delivery, Schedule};
-use super::wire::Encoding;
-
-/// The first bytes of a lane connection (a gRPC connection opens with HTTP/2's preface or a
-/// TLS hello, never with these).
-pub const LANE_MAGIC: &[u8; 8] = b"XFLANE01";
-
-/// Longest handshake message either side reads.
-const MAX_HANDSHAKE_BYTES: usize = 64 * 1024;
+use super::wire::{Encoding, float_bytes, float_bytes_mut};
 
 /// Longest chunk header a lane reads.
 const MAX_HEADER_BYTES: usize = 64;
-
-/// `message` preceded by its length as a little-endian u32.
-pub(super) fn framed(message: &impl Message) -> Vec<u8> {
-    let body = message.encode_to_vec();
-    let mut framed = Vec::with_capacity(4 + body.len());
-    framed.extend_from_slice(&(body.len() as u32).to_le_bytes());
-    framed.extend_from_slice(&body);
-    framed
-}
-
-/// Why a lane's handshake message could not be read.
-#[derive(Debug, thiserror::Error)]
-pub(super) enum HandshakeError {
-    /// The connection failed or closed.
-    #[error("{0}")]
-    Io(#[from] std::io::Error),
-    /// The length prefix announced more than a handshake may hold.
-    #[error("a {length}-byte message, above the {limit} allowed")]
-    TooLong {
-        /// The announced length.
-        length: usize,
-        /// The most allowed.
-        limit: usize,
-    },
-    /// The bytes are not the message.
-    #[error("an unreadable message: {0}")]
-    Unreadable(#[from] prost::DecodeError),
-}
-
-/// Reads one length-prefixed message of at most `limit` bytes.
-pub(super) async fn read_framed<M: Message + Default>(
-    stream: &mut TcpStream,
-    limit: usize,
-) -> Result<M, HandshakeError> {
-    let mut length = [0u8; 4];
-    stream.read_exact(&mut length).await?;
-    let length = u32::from_le_bytes(length) as usize;
-    if length > limit {
-        return Err(HandshakeError::TooLong { length, limit });
-    }
-    let mut body = vec![0u8; length];
-    stream.read_exact(&mut body).await?;
-    Ok(M::decode(body.as_slice())?)
-}
-
-/// Opens lane `hello.lane` to `address`: the magic, the hello, and the listener's answer.
-/// Returns the connection ready for chunks, or why it was refused.
-pub(super) async fn dial(address: &str, hello: &LaneHello) -> Result<TcpStream, DialError> {
-    let mut stream = TcpStream::connect(address)
-        .await
-        .map_err(|e| DialError::Unreachable(e.to_string()))?;
-    stream
-        .set_nodelay(true)
-        .map_err(|e| DialError::Unreachable(e.to_string()))?;
-    let mut opening = LANE_MAGIC.to_vec();
-    opening.extend_from_slice(&framed(hello));
-    stream
-        .write_all(&opening)
-        .await
-        .map_err(|e| DialError::Unreachable(e.to_string()))?;
-    let answer: LaneAnswer = read_framed(&mut stream, MAX_HANDSHAKE_BYTES)
-        .await
-        .map_err(|e| DialError::Unreachable(e.to_string()))?;
-    if answer.refusal.is_empty() {
-        Ok(stream)
-    } else {
-        Err(DialError::Refused(answer.refusal))
-    }
-}
-
-/// Why a lane could not be opened.
-#[derive(Debug)]
-pub(super) enum DialError {
-    /// Nothing answered (yet): worth another try until the deadline.
-    Unreachable(String),
-    /// The listener said no, and why.
-    Refused(String),
-}
-
-/// Reads a lane's hello, after its magic, from a connection the listener accepted.
-pub(super) async fn read_hello(stream: &mut TcpStream) -> Result<LaneHello, HandshakeError> {
-    let mut magic = [0u8; LANE_MAGIC.len()];
-    stream.read_exact(&mut magic).await?;
-    read_framed(stream, MAX_HANDSHAKE_BYTES).await
-}
-
-/// Answers a lane's hello: an empty refusal admits it.
-pub(super) async fn answer(stream: &mut TcpStream, refusal: &str) -> std::io::Result<()> {
-    let answer = LaneAnswer {
-        refusal: refusal.to_string(),
-    };
-    stream.write_all(&framed(&answer)).await
-}
 
 /// One lane of a ring: its connections to the right and from the left neighbour, on a
 /// single-threaded runtime of its own so that it can run on any thread.
@@ -266,12 +168,11 @@ impl<'a, 'j> Pump<'a, 'j> {
     }
 
     fn left_rank(&self) -> usize {
-        let schedule = &self.job.schedule;
-        (schedule.rank + schedule.world - 1) % schedule.world
+        left_of(self.job.schedule.rank, self.job.schedule.world)
     }
 
     fn right_rank(&self) -> usize {
-        (self.job.schedule.rank + 1) % self.job.schedule.world
+        right_of(self.job.schedule.rank, self.job.schedule.world)
     }
 
     /// Queues the chunk `begin..end` of `segment` for ring step `step`.
@@ -456,34 +357,19 @@ impl<'a, 'j> Pump<'a, 'j> {
         let Some(&delivery) = self.deliveries.peek() else {
             return self.bad("a chunk after the all-reduce's last".into());
         };
-        let bytes = self.job.encoding.chunk_bytes(delivery.begin, delivery.end);
-        if header.operation != self.job.operation
-            || header.ring_step as usize != delivery.step
-            || header.segment as usize != delivery.segment
-            || header.offset as usize != delivery.begin
+        let place = Place {
+            operation: header.operation,
+            ring_step: u64::from(header.ring_step),
+            segment: u64::from(header.segment),
+            offset: header.offset,
+            value_bytes: header.value_bytes,
+        };
+        if let Err(misplaced) =
+            check_place(&place, self.job.operation, &delivery, &self.job.encoding)
         {
-            return self.bad(format!(
-                "operation {} ring step {} segment {} offset {}, expected operation {} ring step {} segment {} offset {}",
-                header.operation,
-                header.ring_step,
-                header.segment,
-                header.offset,
-                self.job.operation,
-                delivery.step,
-                delivery.segment,
-                delivery.begin
-            ));
+            return self.bad(misplaced.0);
         }
-        if header.value_bytes != bytes as u64 {
-            return self.bad(format!(
-                "{} bytes for segment {} at offset {}, expected {bytes} ({} values, {} on the wire)",
-                header.value_bytes,
-                delivery.segment,
-                delivery.begin,
-                delivery.end - delivery.begin,
-                self.job.encoding.wire.name()
-            ));
-        }
+        let bytes = self.job.encoding.chunk_bytes(delivery.begin, delivery.end);
         let direct = !self.job.schedule.adds(delivery.step)
             && self.job.encoding.is_plain(delivery.begin, delivery.end);
         self.incoming = Incoming::Values {
@@ -497,29 +383,19 @@ impl<'a, 'j> Pump<'a, 'j> {
 
     /// A received chunk into the buffer, and on around the ring when a step follows.
     fn take_in(&mut self, delivery: Delivery, direct: bool, values: &mut [f32]) {
-        let schedule = self.job.schedule;
-        let encoding = self.job.encoding;
         let target = &mut values[delivery.begin..delivery.end];
-        if !direct {
-            encoding.absorb(
-                delivery.begin,
-                target,
-                &self.staging,
-                schedule.adds(delivery.step),
-            );
-        }
-        if schedule.completes(delivery.step) {
-            // This rank owns the chunk now: what it keeps is what the others get.
-            encoding.round_owned(delivery.begin, target);
-        }
+        let received = (!direct).then_some(&self.staging[..]);
+        let onwards = take_in(
+            &self.job.schedule,
+            &self.job.encoding,
+            &delivery,
+            target,
+            received,
+        );
         self.deliveries.next();
-        if delivery.step + 1 < schedule.steps() {
-            self.queue(
-                delivery.step + 1,
-                delivery.segment,
-                delivery.begin,
-                delivery.end,
-            );
+        if onwards {
+            let (step, segment) = (delivery.step + 1, delivery.segment);
+            self.queue(step, segment, delivery.begin, delivery.end);
         }
     }
 
@@ -529,19 +405,4 @@ impl<'a, 'j> Pump<'a, 'j> {
             detail,
         })
     }
-}
-
-/// The bytes of `values` as they lie in memory (little-endian float32 on the hosts this runs
-/// on; [`Encoding::is_plain`] is false elsewhere).
-fn float_bytes(values: &[f32]) -> &[u8] {
-    // SAFETY: an f32 is 4 initialised bytes without padding, a u8 needs no alignment, and the
-    // slice covers exactly the values' memory for as long as `values` is borrowed.
-    unsafe { std::slice::from_raw_parts(values.as_ptr().cast::<u8>(), size_of_val(values)) }
-}
-
-/// The bytes of `values`, writable: every bit pattern written is some f32.
-fn float_bytes_mut(values: &mut [f32]) -> &mut [u8] {
-    // SAFETY: as in `float_bytes`, and any 4 bytes are a valid f32, so whatever is written
-    // through the byte view leaves valid values; the view borrows `values` mutably.
-    unsafe { std::slice::from_raw_parts_mut(values.as_mut_ptr().cast::<u8>(), size_of_val(values)) }
 }

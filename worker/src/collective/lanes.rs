@@ -1,36 +1,64 @@
 //! A ring on lanes: how it opens them and how an all-reduce shares the buffer among them.
 
-use std::time::{Duration, Instant};
+use std::time::Instant;
 
 use tokio::net::TcpStream;
 use tokio::sync::mpsc;
 
-use super::lane::{DialError, Lane, LaneJob, dial};
+use super::core::with_retries;
+use super::lane::{Lane, LaneJob};
+use super::opening::{answer, dial};
 use super::{AdmittedLane, CollectiveError, Encoding, ReduceStats, Ring, Schedule};
 
 impl Ring {
-    /// Dials `hello.lanes` lanes to the right neighbour at `address` and waits for as many
-    /// from the left one, within the link's timeout.
+    /// Dials `hello.lanes` lanes to the right neighbour at `address` (proving `secret`, this
+    /// rank's ring secret) while taking as many from the left one, within the link's timeout.
+    /// Both at once: a dialled lane is answered only once its ring has taken it, so a rank
+    /// that dialled before taking would wait on its right neighbour doing the same, around the
+    /// ring.
     pub(super) async fn open_lanes(
         &self,
         address: &str,
         hello: proto::v1::LaneHello,
-        mut admitted: mpsc::Receiver<AdmittedLane>,
+        secret: &str,
+        admitted: mpsc::Receiver<AdmittedLane>,
     ) -> Result<Vec<Lane>, CollectiveError> {
         let deadline = tokio::time::Instant::now() + self.timeout;
         let count = hello.lanes as usize;
-        let mut right = Vec::with_capacity(count);
-        for lane in 0..hello.lanes {
-            let hello = proto::v1::LaneHello {
-                lane,
-                ..hello.clone()
-            };
-            right.push(self.dial_lane(address, &hello, deadline).await?);
-        }
-        let left_rank = (self.rank + self.world - 1) % self.world;
+        let dialling = async {
+            let mut right = Vec::with_capacity(count);
+            for lane in 0..hello.lanes {
+                let hello = proto::v1::LaneHello {
+                    lane,
+                    ..hello.clone()
+                };
+                right.push(self.dial_lane(address, &hello, secret, deadline).await?);
+            }
+            Ok(right)
+        };
+        let taking = self.take_left_lanes(count, admitted, deadline);
+        let (right, left) = tokio::try_join!(dialling, taking)?;
+        right
+            .into_iter()
+            .zip(left)
+            .map(|(right, left)| Lane::new(right, left))
+            .collect::<std::io::Result<Vec<Lane>>>()
+            .map_err(|e| CollectiveError::Aborted(format!("a lane's runtime: {e}")))
+    }
+
+    /// Takes the left neighbour's `count` lanes as the listener admits them (each proved the
+    /// neighbour's secret), answering each once taken: a lane index already open is refused,
+    /// not put in the earlier connection's place.
+    async fn take_left_lanes(
+        &self,
+        count: usize,
+        mut admitted: mpsc::Receiver<AdmittedLane>,
+        deadline: tokio::time::Instant,
+    ) -> Result<Vec<TcpStream>, CollectiveError> {
+        let left_rank = self.left_rank();
         let mut left: Vec<Option<TcpStream>> = (0..count).map(|_| None).collect();
         while left.iter().any(Option::is_none) {
-            let arrived = tokio::select! {
+            let mut arrived = tokio::select! {
                 arrived = admitted.recv() => arrived.ok_or(CollectiveError::Cancelled)?,
                 () = self.cancel.cancelled() => return Err(CollectiveError::Cancelled),
                 () = tokio::time::sleep_until(deadline) => return Err(CollectiveError::Timeout {
@@ -39,58 +67,46 @@ impl Ring {
                 }),
             };
             if arrived.lanes as usize != count {
+                let detail = format!(
+                    "it opened lane {} of {}, where this ring has {count}",
+                    arrived.lane, arrived.lanes
+                );
+                let _ = answer(&mut arrived.stream, &detail).await;
                 return Err(CollectiveError::BadChunk {
                     rank: left_rank,
-                    detail: format!(
-                        "it opened lane {} of {}, where this ring has {count}",
-                        arrived.lane, arrived.lanes
-                    ),
+                    detail,
                 });
             }
-            left[arrived.lane as usize] = Some(arrived.stream);
+            let slot = &mut left[arrived.lane as usize];
+            if slot.is_some() {
+                let refusal = format!("lane {} is open already", arrived.lane);
+                tracing::warn!(
+                    lane = arrived.lane,
+                    "a second connection for an open lane was refused"
+                );
+                let _ = answer(&mut arrived.stream, &refusal).await;
+                continue;
+            }
+            if answer(&mut arrived.stream, "").await.is_ok() {
+                *slot = Some(arrived.stream);
+            }
         }
-        right
-            .into_iter()
-            .zip(left.into_iter().flatten())
-            .map(|(right, left)| Lane::new(right, left))
-            .collect::<std::io::Result<Vec<Lane>>>()
-            .map_err(|e| CollectiveError::Aborted(format!("a lane's runtime: {e}")))
+        Ok(left.into_iter().flatten().collect())
     }
 
-    /// One lane to `address`, tried again while nothing answers, until `deadline`.
+    /// One lane to `address`, tried again while nothing answers, until `deadline`. The
+    /// neighbour answers once it has joined the generation too, so the wait for the answer is
+    /// bounded by the deadline and the generation's end.
     async fn dial_lane(
         &self,
         address: &str,
         hello: &proto::v1::LaneHello,
+        secret: &str,
         deadline: tokio::time::Instant,
     ) -> Result<TcpStream, CollectiveError> {
-        let right = (self.rank + 1) % self.world;
-        let failed = |reason: String| CollectiveError::Connect {
-            rank: right,
-            address: address.to_string(),
-            reason,
-        };
-        loop {
-            // The neighbour answers once it has joined the generation too, so the wait for
-            // the answer is bounded by the deadline and the generation's end.
-            let dialled = tokio::select! {
-                dialled = dial(address, hello) => dialled,
-                () = self.cancel.cancelled() => return Err(CollectiveError::Cancelled),
-                () = tokio::time::sleep_until(deadline) => {
-                    return Err(failed(format!("no answer within {:.0} s", self.timeout.as_secs_f64())));
-                }
-            };
-            match dialled {
-                Ok(stream) => return Ok(stream),
-                Err(DialError::Refused(reason)) => return Err(failed(reason)),
-                Err(DialError::Unreachable(reason)) if tokio::time::Instant::now() >= deadline => {
-                    return Err(failed(reason));
-                }
-                Err(DialError::Unreachable(_)) => {
-                    tokio::time::sleep(Duration::from_millis(100)).await;
-                }
-            }
-        }
+        with_retries(deadline, &self.cancel, || dial(address, hello, secret))
+            .await
+            .map_err(|gave_up| self.connect_failed(address, gave_up))
     }
 
     /// Sums `values` across the ring on its lanes, each lane taking one range of the buffer

@@ -17,14 +17,20 @@ use tokio::sync::mpsc;
 use tokio_stream::wrappers::UnboundedReceiverStream;
 use tokio_util::sync::CancellationToken;
 
+mod core;
+mod desk;
+mod handshake;
 mod lane;
 mod lanes;
+mod opening;
 mod schedule;
 mod service;
 mod wire;
 
+use core::{Attempt, GaveUp, Place, check_place, left_of, right_of, take_in, with_retries};
+pub use desk::{MAX_HANDSHAKES, MAX_HANDSHAKES_PER_ADDRESS};
 use lane::Lane;
-use schedule::Schedule;
+use schedule::{Delivery, Schedule};
 use service::{AdmittedLane, Inbound};
 pub use service::{
     CollectiveService, INBOX_CHUNKS, MAX_LANES, Mailbox, RING_SECRET_KEY, RingKeys, server,
@@ -193,17 +199,17 @@ impl Ring {
         }
         // Joined first, so the left neighbour's stream is admitted while this rank dials.
         let inboxes = mailbox.join(generation, &keys.left);
-        let right = (rank + 1) % world;
-        let address = &peers[right];
+        let address = &peers[ring.right_rank()];
         if link.tls.is_none() && link.lanes > 0 {
             let hello = proto::v1::LaneHello {
-                token: link.token.clone(),
-                ring_secret: keys.own.clone(),
                 generation,
                 lane: 0,
                 lanes: link.lanes as u32,
+                nonce: Vec::new(),
             };
-            ring.lanes = ring.open_lanes(address, hello, inboxes.lanes).await?;
+            ring.lanes = ring
+                .open_lanes(address, hello, &keys.own, inboxes.lanes)
+                .await?;
         } else {
             ring.inbox = Some(inboxes.chunks);
             ring.outbound = Some(ring.open_stream(address, keys, link).await?);
@@ -219,7 +225,7 @@ impl Ring {
         keys: &RingKeys,
         link: &Link,
     ) -> Result<mpsc::UnboundedSender<Chunk>, CollectiveError> {
-        let right = (self.rank + 1) % self.world;
+        let right = self.right_rank();
         let failed = |reason: String| CollectiveError::Connect {
             rank: right,
             address: address.to_string(),
@@ -238,19 +244,16 @@ impl Ring {
             .initial_stream_window_size(Some(16 * 1024 * 1024))
             .initial_connection_window_size(Some(32 * 1024 * 1024))
             .connect_timeout(Duration::from_secs(2));
-        let deadline = Instant::now() + self.timeout;
+        let deadline = tokio::time::Instant::now() + self.timeout;
         // A right neighbour that died before the ring formed would hold this rank here for
         // the whole timeout; the coordinator's end of the generation releases it at once.
-        let channel = loop {
-            if self.cancel.is_cancelled() {
-                return Err(CollectiveError::Cancelled);
-            }
-            match endpoint.connect().await {
-                Ok(channel) => break channel,
-                Err(e) if Instant::now() >= deadline => return Err(failed(e.to_string())),
-                Err(_) => tokio::time::sleep(Duration::from_millis(100)).await,
-            }
-        };
+        let endpoint = &endpoint;
+        let channel = with_retries(deadline, &self.cancel, || async move {
+            let connected = endpoint.connect().await;
+            connected.map_err(|e| Attempt::Again(e.to_string()))
+        })
+        .await
+        .map_err(|gave_up| self.connect_failed(address, gave_up))?;
         let attach = proto::AttachToken::new(&link.token).map_err(|e| failed(e.to_string()))?;
         let mut client = CollectiveClient::with_interceptor(channel, attach)
             .max_encoding_message_size(proto::MAX_MESSAGE_BYTES);
@@ -270,6 +273,28 @@ impl Ring {
     /// Ranks in the ring.
     pub fn world_size(&self) -> usize {
         self.world
+    }
+
+    /// The rank whose chunks this rank receives.
+    fn left_rank(&self) -> usize {
+        left_of(self.rank, self.world)
+    }
+
+    /// The rank this rank sends its chunks to.
+    fn right_rank(&self) -> usize {
+        right_of(self.rank, self.world)
+    }
+
+    /// The error of a connection to the right neighbour at `address` that gave up.
+    fn connect_failed(&self, address: &str, gave_up: GaveUp) -> CollectiveError {
+        match gave_up {
+            GaveUp::Cancelled => CollectiveError::Cancelled,
+            GaveUp::Failed(reason) => CollectiveError::Connect {
+                rank: self.right_rank(),
+                address: address.to_string(),
+                reason,
+            },
+        }
     }
 
     /// This ring with gradients carried as `wire` (every rank of a generation must use the
@@ -312,19 +337,20 @@ impl Ring {
             sender: self.rank as u32,
         };
         let bytes = chunk.values.len();
-        let outbound = self.outbound.as_ref().ok_or(CollectiveError::PeerGone {
-            rank: (self.rank + 1) % self.world,
-        })?;
+        let gone = CollectiveError::PeerGone {
+            rank: self.right_rank(),
+        };
+        let outbound = self.outbound.as_ref().ok_or(gone)?;
         outbound
             .send(chunk)
             .map_err(|_| CollectiveError::PeerGone {
-                rank: (self.rank + 1) % self.world,
+                rank: self.right_rank(),
             })
             .map(|()| bytes)
     }
 
     async fn receive(&mut self) -> Result<Chunk, CollectiveError> {
-        let left = (self.rank + self.world - 1) % self.world;
+        let left = self.left_rank();
         let timeout = self.timeout;
         let inbox = self.inbox.as_mut().ok_or(CollectiveError::InboundBroken {
             rank: left,
@@ -400,22 +426,13 @@ impl Ring {
             bytes_sent += self.send(0, r, a, &values[a..b], &encoding)? as u64;
         }
         for delivery in schedule.deliveries() {
-            let (step, segment, a, b) = (
-                delivery.step,
-                delivery.segment,
-                delivery.begin,
-                delivery.end,
-            );
             let chunk = self.receive().await?;
-            self.check(&chunk, step as u32, segment, a, b, &encoding)?;
-            let target = &mut values[a..b];
-            encoding.absorb(a, target, &chunk.values, schedule.adds(step));
-            if schedule.completes(step) {
-                // This rank owns the segment now: what it keeps is what the others get.
-                encoding.round_owned(a, target);
-            }
-            if step + 1 < schedule.steps() {
-                bytes_sent += self.send(step as u32 + 1, segment, a, target, &encoding)? as u64;
+            self.check(&chunk, &delivery, &encoding)?;
+            let target = &mut values[delivery.begin..delivery.end];
+            if take_in(&schedule, &encoding, &delivery, target, Some(&chunk.values)) {
+                let step = delivery.step as u32 + 1;
+                bytes_sent +=
+                    self.send(step, delivery.segment, delivery.begin, target, &encoding)? as u64;
             }
         }
         self.operation += 1;
@@ -425,47 +442,35 @@ impl Ring {
         })
     }
 
+    /// Checks a chunk from the stream against `delivery`, the chunk the schedule delivers
+    /// next: the stream's own fields (its sender, its generation), then its place.
     fn check(
         &self,
         chunk: &Chunk,
-        step: u32,
-        segment: usize,
-        begin: usize,
-        end: usize,
+        delivery: &Delivery,
         encoding: &Encoding,
     ) -> Result<(), CollectiveError> {
-        let left = (self.rank + self.world - 1) % self.world;
+        let left = self.left_rank();
         let bad = |detail: String| Err(CollectiveError::BadChunk { rank: left, detail });
-        let expected_bytes = encoding.chunk_bytes(begin, end);
         if chunk.sender as usize != left {
             return bad(format!(
                 "its stream carried a chunk claiming to be from rank {}",
                 chunk.sender
             ));
         }
-        if chunk.generation != self.generation || chunk.operation != self.operation {
+        if chunk.generation != self.generation {
             return bad(format!(
-                "generation {} operation {}, expected generation {} operation {}",
-                chunk.generation, chunk.operation, self.generation, self.operation
+                "generation {}, expected generation {}",
+                chunk.generation, self.generation
             ));
         }
-        if chunk.ring_step != step
-            || chunk.segment as usize != segment
-            || chunk.offset as usize != begin
-        {
-            return bad(format!(
-                "ring step {} segment {} offset {}, expected ring step {step} segment {segment} offset {begin}",
-                chunk.ring_step, chunk.segment, chunk.offset
-            ));
-        }
-        if chunk.values.len() != expected_bytes {
-            return bad(format!(
-                "{} bytes for segment {segment} at offset {begin}, expected {expected_bytes} ({} values, {} on the wire)",
-                chunk.values.len(),
-                end - begin,
-                encoding.wire.name()
-            ));
-        }
-        Ok(())
+        let place = Place {
+            operation: chunk.operation,
+            ring_step: u64::from(chunk.ring_step),
+            segment: u64::from(chunk.segment),
+            offset: chunk.offset,
+            value_bytes: chunk.values.len() as u64,
+        };
+        check_place(&place, self.operation, delivery, encoding).or_else(|m| bad(m.0))
     }
 }

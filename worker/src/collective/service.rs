@@ -70,10 +70,11 @@ struct Joined {
 #[derive(Clone)]
 pub(super) struct Doors {
     inbox: mpsc::Sender<Inbound>,
-    lanes: mpsc::Sender<AdmittedLane>,
+    pub(super) lanes: mpsc::Sender<AdmittedLane>,
 }
 
-/// A lane connection from the left neighbour, admitted: which lane of how many.
+/// A lane connection from the left neighbour, proven: which lane of how many. Its ring
+/// answers it once taken (`lanes.rs`).
 pub(super) struct AdmittedLane {
     pub(super) lane: u32,
     pub(super) lanes: u32,
@@ -93,14 +94,6 @@ pub(super) struct Inboxes {
 pub struct Mailbox {
     joined: Mutex<Option<Joined>>,
     changed: Notify,
-}
-
-/// Why a stream was not admitted.
-enum Refused {
-    /// Its generation is older than the one this rank is in.
-    Stale(u64),
-    /// It does not carry the left neighbour's secret.
-    WrongSecret,
 }
 
 impl Mailbox {
@@ -124,26 +117,40 @@ impl Mailbox {
     /// The doors for traffic of `generation` presenting `secret`, waiting for this rank to
     /// join that generation.
     pub(super) async fn admit(&self, generation: u64, secret: &str) -> Result<Doors, Status> {
+        let (doors, left_secret) = self.joined(generation).await?;
+        if proto::constant_time_equal(secret.as_bytes(), left_secret.as_bytes()) {
+            return Ok(doors);
+        }
+        tracing::warn!(
+            generation,
+            "a stream without the left neighbour's secret was refused"
+        );
+        Err(Status::permission_denied(format!(
+            "only this rank's left neighbour of generation {generation} may stream to it"
+        )))
+    }
+
+    /// The doors of `generation` and the secret its left neighbour holds, once this rank has
+    /// joined it (waiting at most [`ADMISSION_WAIT`]); a lane proves the secret without
+    /// presenting it (`handshake.rs`).
+    pub(super) async fn joined(&self, generation: u64) -> Result<(Doors, String), Status> {
         let deadline = tokio::time::Instant::now() + ADMISSION_WAIT;
         loop {
             let changed = self.changed.notified();
-            match self.try_admit(generation, secret) {
-                Ok(Some(doors)) => return Ok(doors),
-                Ok(None) => {}
-                Err(Refused::Stale(current)) => {
-                    return Err(Status::failed_precondition(format!(
-                        "generation {generation} is over: this rank is in generation {current}"
-                    )));
+            let current = {
+                let joined = self.lock();
+                match joined.as_ref() {
+                    Some(joined) if joined.generation == generation => {
+                        return Ok((joined.doors.clone(), joined.left_secret.clone()));
+                    }
+                    Some(joined) => Some(joined.generation),
+                    None => None,
                 }
-                Err(Refused::WrongSecret) => {
-                    tracing::warn!(
-                        generation,
-                        "a stream without the left neighbour's secret was refused"
-                    );
-                    return Err(Status::permission_denied(format!(
-                        "only this rank's left neighbour of generation {generation} may stream to it"
-                    )));
-                }
+            };
+            if let Some(current) = current.filter(|&current| current > generation) {
+                return Err(Status::failed_precondition(format!(
+                    "generation {generation} is over: this rank is in generation {current}"
+                )));
             }
             if tokio::time::timeout_at(deadline, changed).await.is_err() {
                 return Err(Status::deadline_exceeded(format!(
@@ -151,23 +158,6 @@ impl Mailbox {
                     ADMISSION_WAIT.as_secs()
                 )));
             }
-        }
-    }
-
-    /// `Ok(None)`: this rank has not joined `generation` yet.
-    fn try_admit(&self, generation: u64, secret: &str) -> Result<Option<Doors>, Refused> {
-        match self.lock().as_ref() {
-            Some(joined) if joined.generation > generation => {
-                Err(Refused::Stale(joined.generation))
-            }
-            Some(joined) if joined.generation == generation => {
-                if proto::constant_time_equal(secret.as_bytes(), joined.left_secret.as_bytes()) {
-                    Ok(Some(joined.doors.clone()))
-                } else {
-                    Err(Refused::WrongSecret)
-                }
-            }
-            _ => Ok(None),
         }
     }
 
@@ -265,7 +255,7 @@ pub fn spawn_server(
 /// The server of `service` on `listener` behind the job-token check (and TLS when `link` has
 /// it), with flow-control windows sized for megabyte chunks, and `grpc.health.v1` beside it
 /// without the check; lane connections on the same port go to the mailbox
-/// ([`LaneDesk`]). It serves until dropped. Also returns the health service's reporter.
+/// (`desk.rs`). It serves until dropped. Also returns the health service's reporter.
 pub fn server(
     listener: tokio::net::TcpListener,
     service: CollectiveService,
@@ -292,11 +282,7 @@ pub fn server(
     let (reporter, health) = tonic_health::server::health_reporter();
     let serving = reporter.clone();
     let (grpc, incoming) = mpsc::channel(MAX_LANES);
-    let lanes = LaneDesk {
-        mailbox: mailbox.clone(),
-        token: link.token.clone(),
-        tls: link.tls.is_some(),
-    };
+    let lanes = super::desk::LaneDesk::new(mailbox.clone(), link.tls.is_some());
     let run = async move {
         serving
             .set_serving::<proto::v1::collective_server::CollectiveServer<CollectiveService>>()
@@ -317,146 +303,4 @@ pub fn server(
         }
     };
     Ok((reporter, run))
-}
-
-/// Longest a new connection may take to show whether it is a lane, and a lane to say hello.
-const LANE_HELLO_WAIT: Duration = Duration::from_secs(10);
-
-/// The listener's desk for lane connections: they share the Collective port with gRPC and
-/// are told apart by their first bytes.
-struct LaneDesk {
-    mailbox: Arc<Mailbox>,
-    token: String,
-    tls: bool,
-}
-
-impl LaneDesk {
-    /// Accepts connections until the listener fails: lanes are admitted here, the rest handed
-    /// to the gRPC server through `grpc`. Each connection is sorted on a task of its own, so a
-    /// silent one holds up nobody.
-    async fn route(
-        self,
-        listener: tokio::net::TcpListener,
-        grpc: mpsc::Sender<std::io::Result<tokio::net::TcpStream>>,
-    ) {
-        let desk = Arc::new(self);
-        loop {
-            let stream = match listener.accept().await {
-                Ok((stream, _)) => stream,
-                Err(error) => {
-                    tracing::warn!(%error, "the collective listener could not accept");
-                    tokio::time::sleep(Duration::from_millis(100)).await;
-                    continue;
-                }
-            };
-            // Chunks are small and latency-bound at the pipeline's ends.
-            let _ = stream.set_nodelay(true);
-            let (desk, grpc) = (desk.clone(), grpc.clone());
-            tokio::spawn(async move {
-                if opens_lane(&stream).await {
-                    desk.admit(stream).await;
-                } else {
-                    let _ = grpc.send(Ok(stream)).await;
-                }
-            });
-        }
-    }
-
-    /// Reads a lane's hello, answers it, and hands an admitted lane to its ring.
-    async fn admit(&self, mut stream: tokio::net::TcpStream) {
-        let hello =
-            match tokio::time::timeout(LANE_HELLO_WAIT, super::lane::read_hello(&mut stream)).await
-            {
-                Ok(Ok(hello)) => hello,
-                Ok(Err(reason)) => {
-                    tracing::warn!(%reason, "a lane connection sent no readable hello");
-                    return;
-                }
-                Err(_) => return,
-            };
-        let admitted = self.check(&hello).await;
-        let refusal = admitted
-            .as_ref()
-            .err()
-            .map(ToString::to_string)
-            .unwrap_or_default();
-        if !refusal.is_empty() {
-            tracing::warn!(generation = hello.generation, %refusal, "a lane was refused");
-        }
-        if super::lane::answer(&mut stream, &refusal).await.is_err() {
-            return;
-        }
-        if let Ok(doors) = admitted {
-            let lane = AdmittedLane {
-                lane: hello.lane,
-                lanes: hello.lanes,
-                stream,
-            };
-            let _ = doors.lanes.send(lane).await;
-        }
-    }
-
-    /// Whether `hello` may join this rank's ring, as the Push stream's checks decide.
-    async fn check(&self, hello: &proto::v1::LaneHello) -> Result<Doors, LaneRefusal> {
-        if self.tls {
-            return Err(LaneRefusal::Tls);
-        }
-        if !proto::constant_time_equal(hello.token.as_bytes(), self.token.as_bytes()) {
-            return Err(LaneRefusal::Token);
-        }
-        if hello.lanes == 0 || hello.lane >= hello.lanes || hello.lanes as usize > MAX_LANES {
-            return Err(LaneRefusal::NoSuchLane {
-                lane: hello.lane,
-                lanes: hello.lanes,
-            });
-        }
-        self.mailbox
-            .admit(hello.generation, &hello.ring_secret)
-            .await
-            .map_err(|status| LaneRefusal::Ring(status.message().to_string()))
-    }
-}
-
-/// Why a lane was not admitted (sent back as its answer's refusal).
-#[derive(Debug, thiserror::Error)]
-enum LaneRefusal {
-    /// This rank's ring runs over TLS.
-    #[error("this rank's ring runs over TLS, which lanes do not")]
-    Tls,
-    /// The hello's token is not the job's.
-    #[error("wrong job token")]
-    Token,
-    /// The lane's place is impossible.
-    #[error("lane {lane} of {lanes} (at most {MAX_LANES} lanes)")]
-    NoSuchLane {
-        /// Which lane it claimed to be.
-        lane: u32,
-        /// Of how many.
-        lanes: u32,
-    },
-    /// The ring's own admission refused it (stale generation, another rank's secret, or this
-    /// rank never joined its generation).
-    #[error("{0}")]
-    Ring(String),
-}
-
-/// Whether `stream` opens with [`super::lane::LANE_MAGIC`] (waiting for its first bytes at
-/// most [`LANE_HELLO_WAIT`]); gRPC clients speak first too (HTTP/2's preface or TLS's hello).
-async fn opens_lane(stream: &tokio::net::TcpStream) -> bool {
-    let magic = super::lane::LANE_MAGIC;
-    let sniff = async {
-        let mut first = [0u8; 8];
-        loop {
-            match stream.peek(&mut first).await {
-                Ok(0) | Err(_) => return false,
-                Ok(seen) if first[..seen] != magic[..seen] => return false,
-                Ok(seen) if seen == magic.len() => return true,
-                // A prefix of the magic so far: look again once more has come.
-                Ok(_) => tokio::time::sleep(Duration::from_millis(5)).await,
-            }
-        }
-    };
-    tokio::time::timeout(LANE_HELLO_WAIT, sniff)
-        .await
-        .unwrap_or(false)
 }

@@ -116,18 +116,27 @@ impl Encoding {
 
 /// `values` appended to `bytes` as little-endian float32.
 fn extend_f32(bytes: &mut Vec<u8>, values: &[f32]) {
-    #[cfg(target_endian = "little")]
-    {
-        // SAFETY: an f32 is 4 initialised bytes with no padding, any byte may be read as a
-        // u8, a u8 needs no alignment, and the slice covers exactly the values' memory. On a
-        // little-endian host those bytes are the little-endian encoding.
-        let raw = unsafe {
-            std::slice::from_raw_parts(values.as_ptr().cast::<u8>(), std::mem::size_of_val(values))
-        };
-        bytes.extend_from_slice(raw);
+    if cfg!(target_endian = "little") {
+        bytes.extend_from_slice(float_bytes(values));
+    } else {
+        bytes.extend(values.iter().flat_map(|value| value.to_le_bytes()));
     }
-    #[cfg(not(target_endian = "little"))]
-    bytes.extend(values.iter().flat_map(|value| value.to_le_bytes()));
+}
+
+/// The bytes of `values` as they lie in memory: little-endian float32 on a little-endian
+/// host, which is where both transports use them ([`Encoding::is_plain`] is false elsewhere).
+/// The one place the ring views floats as bytes.
+pub(super) fn float_bytes(values: &[f32]) -> &[u8] {
+    // SAFETY: an f32 is 4 initialised bytes without padding, a u8 needs no alignment, and the
+    // slice covers exactly the values' memory for as long as `values` is borrowed.
+    unsafe { std::slice::from_raw_parts(values.as_ptr().cast::<u8>(), size_of_val(values)) }
+}
+
+/// The bytes of `values`, writable: every bit pattern written is some f32.
+pub(super) fn float_bytes_mut(values: &mut [f32]) -> &mut [u8] {
+    // SAFETY: as in `float_bytes`, and any 4 bytes are a valid f32, so whatever is written
+    // through the byte view leaves valid values; the view borrows `values` mutably.
+    unsafe { std::slice::from_raw_parts_mut(values.as_mut_ptr().cast::<u8>(), size_of_val(values)) }
 }
 
 fn f32_of(raw: &[u8]) -> f32 {

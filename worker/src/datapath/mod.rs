@@ -123,11 +123,15 @@ pub enum StepError {
     },
 }
 
-/// When the parameter checksum is due: every `every` steps and after the stage's last.
+/// When the parameter checksum is due: every `every` steps, at every step the commit schedule
+/// commits (`commit_every`, and the stage's last), so that the coordinator can verify every
+/// commit against every replica's checksum (`coordinator/src/job/verified.rs`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct ChecksumPlan {
     /// The interval, or `auto` from the model's size.
     pub every: ChecksumEvery,
+    /// The commit interval (`checkpoint.every`).
+    pub commit_every: u64,
     /// The stage's last step (counted from 1).
     pub total_steps: u64,
 }
@@ -136,7 +140,9 @@ impl ChecksumPlan {
     /// Whether the checksum is due after step `done` (counted from 1) of a model of
     /// `parameters` values.
     pub fn due(&self, done: u64, parameters: usize) -> bool {
-        done.is_multiple_of(self.every.steps(parameters)) || done == self.total_steps
+        done.is_multiple_of(self.every.steps(parameters))
+            || done.is_multiple_of(self.commit_every.max(1))
+            || done == self.total_steps
     }
 }
 
@@ -150,6 +156,9 @@ pub struct DataPath {
     sum: Vec<f32>,
     /// One flat buffer for each further replica, each as long as `sum`.
     staging: Vec<Vec<f32>>,
+    /// The next step hashes the parameters whatever the plan says (a suspension's step, which
+    /// rank 0 commits).
+    checksum_next: bool,
     /// Fault drill: from this step on, the reduced gradients are perturbed.
     diverge_from_step: Option<u64>,
 }
@@ -162,8 +171,15 @@ impl DataPath {
             checksums,
             sum: Vec::new(),
             staging: Vec::new(),
+            checksum_next: false,
             diverge_from_step,
         }
+    }
+
+    /// Makes the next step hash the parameters: the coordinator gave notice that it is the
+    /// suspension's step, which rank 0 commits and the coordinator verifies.
+    pub fn checksum_next_step(&mut self) {
+        self.checksum_next = true;
     }
 
     /// One optimizer step on every replica; they must all be at the same step. `progress`
@@ -193,7 +209,8 @@ impl DataPath {
         phases.apply_s = applying.elapsed().as_secs_f64();
         phases.upload_s = applied.iter().map(|a| a.upload_s).fold(0.0, f64::max);
         let checking = Instant::now();
-        let checksum = if self.checksums.due(step + 1, parameters) {
+        let due = std::mem::take(&mut self.checksum_next);
+        let checksum = if due || self.checksums.due(step + 1, parameters) {
             Some(checksum_all(replicas, step)?)
         } else {
             None

@@ -42,6 +42,7 @@ fn lone_ring(runtime: &Runtime) -> Ring {
 fn every_step() -> ChecksumPlan {
     ChecksumPlan {
         every: ChecksumEvery::Steps(1),
+        commit_every: 100,
         total_steps: 100,
     }
 }
@@ -231,18 +232,61 @@ fn replicas_that_disagree_after_the_update_fail_the_step() {
 fn checksums_fall_every_n_steps_and_after_the_last() {
     let plan = ChecksumPlan {
         every: ChecksumEvery::Steps(4),
+        commit_every: 100,
         total_steps: 10,
     };
     let due: Vec<u64> = (1..=10).filter(|&done| plan.due(done, 1000)).collect();
     assert_eq!(due, [4, 8, 10]);
     let auto = ChecksumPlan {
         every: ChecksumEvery::Auto,
+        commit_every: 1000,
         total_steps: 100,
     };
     assert!(auto.due(3, 1000), "a small model is checked every step");
     let paper = 305_178_624;
     let due: Vec<u64> = (1..=40).filter(|&done| auto.due(done, paper)).collect();
     assert_eq!(due, [19, 38], "the paper's model about every 19 steps");
+}
+
+#[test]
+fn every_commit_step_is_a_checksum_step_off_the_interval_too() {
+    let plan = ChecksumPlan {
+        every: ChecksumEvery::Steps(19),
+        commit_every: 5,
+        total_steps: 42,
+    };
+    let due: Vec<u64> = (1..=42).filter(|&done| plan.due(done, 1000)).collect();
+    assert_eq!(due, [5, 10, 15, 19, 20, 25, 30, 35, 38, 40, 42]);
+    let schedule = crate::commits::CommitSchedule {
+        every: plan.commit_every,
+        total_steps: plan.total_steps,
+    };
+    for done in 1..=42 {
+        let commits =
+            schedule.decide(0, done, false, false) != crate::commits::CommitDecision::Nothing;
+        assert!(
+            !commits || plan.due(done, 1000),
+            "step {done} commits unhashed"
+        );
+    }
+}
+
+#[test]
+fn a_suspensions_notice_hashes_the_next_step_only() {
+    let runtime = Runtime::new().unwrap();
+    let plan = ChecksumPlan {
+        every: ChecksumEvery::Steps(1000),
+        commit_every: 1000,
+        total_steps: 1000,
+    };
+    let mut path = DataPath::new(lone_ring(&runtime), plan, None);
+    let mut replicas = vec![Waiting::new(1.0, Duration::ZERO)];
+    let first = step_once(&mut path, &runtime, &mut replicas);
+    path.checksum_next_step();
+    let noticed = step_once(&mut path, &runtime, &mut replicas);
+    let after = step_once(&mut path, &runtime, &mut replicas);
+    let hashed = [first.checksum, noticed.checksum, after.checksum].map(|c| c.is_some());
+    assert_eq!(hashed, [false, true, false]);
 }
 
 #[test]

@@ -196,3 +196,99 @@ fn a_refused_commit_shows_as_an_outage_while_the_retry_retrains_the_steps_before
     assert_eq!(run.state.status(run.now).store_failing, None);
     assert!(run.state.report().exclusions.is_empty());
 }
+
+#[test]
+fn a_commit_waits_for_every_ranks_checksum_of_its_step() {
+    let mut run = Run::new(false, None);
+    let generation = run.assign(0)[0].as_ref().unwrap().generation;
+    let (w0, w1) = (run.workers[0], run.workers[1]);
+    let commit = Commit {
+        phase: Phase::Stage1,
+        step: 2,
+        location: "mem://stage1/2".into(),
+    };
+    let with_checksum = |checksum: Option<u32>| StepReport {
+        generation,
+        step: 1,
+        checksum,
+        ..StepReport::default()
+    };
+    run.state
+        .report_step(w0, Phase::Stage1, &with_checksum(Some(5)));
+    run.state
+        .report_step(w1, Phase::Stage1, &with_checksum(None));
+    assert_eq!(
+        run.state.commit(w0, commit.clone(), generation),
+        Err(Refusal::Unverified {
+            phase: Phase::Stage1,
+            step: 2,
+            missing: vec![1]
+        }),
+        "rank 1 reported the step without its checksum"
+    );
+    assert!(run.state.durable().last_commit.is_none());
+    run.state
+        .report_step(w1, Phase::Stage1, &with_checksum(Some(5)));
+    assert_eq!(run.state.commit(w0, commit, generation), Ok(false));
+    assert_eq!(run.state.durable().last_commit.as_ref().unwrap().step, 2);
+}
+
+#[test]
+fn a_commit_still_unverified_after_the_wait_ends_its_generation_without_blame() {
+    let mut run = Run::new(false, None);
+    let generation = run.assign(0)[0].as_ref().unwrap().generation;
+    let w0 = run.workers[0];
+    let commit = Commit {
+        phase: Phase::Stage1,
+        step: 2,
+        location: "mem://stage1/2".into(),
+    };
+    let refusal = run.state.commit(w0, commit, generation).unwrap_err();
+    assert!(matches!(refusal, Refusal::Unverified { .. }), "{refusal}");
+    assert!(run.state.roll_back_refused(&refusal, generation, run.now));
+    assert!(
+        !run.state.roll_back_refused(&refusal, generation, run.now),
+        "the generation is over already"
+    );
+    let stale = Refusal::StaleGeneration(generation);
+    assert!(!run.state.roll_back_refused(&stale, generation, run.now));
+    let report = run.state.report();
+    assert_eq!((report.restarts, report.exclusions.len()), (1, 0));
+}
+
+#[test]
+fn a_commit_of_a_step_whose_replicas_disagree_is_refused_and_the_group_rolls_back() {
+    let mut run = Run::new(false, None);
+    let generation = run.assign(0)[0].as_ref().unwrap().generation;
+    let w0 = run.workers[0];
+    assert!(!run.commit(w0, Phase::Stage1, 1, generation));
+    for (worker, checksum) in [(run.workers[0], 5), (run.workers[1], 6)] {
+        let report = StepReport {
+            generation,
+            step: 1,
+            checksum: Some(checksum),
+            ..StepReport::default()
+        };
+        run.state.report_step(worker, Phase::Stage1, &report);
+    }
+    let diverged = Commit {
+        phase: Phase::Stage1,
+        step: 2,
+        location: "mem://stage1/2".into(),
+    };
+    assert!(matches!(
+        run.state.commit(w0, diverged, generation),
+        Err(Refusal::ChecksumsDiffer { step: 2, .. })
+    ));
+    assert!(
+        run.state.tick(run.now),
+        "the divergence ends the generation"
+    );
+    run.now += Duration::from_secs(2);
+    let again = run.assign(generation);
+    assert_eq!(
+        train(&again[0]).start,
+        TrainStart::Resume("mem://stage1/1".into()),
+        "the group resumes from the last verified commit"
+    );
+}

@@ -175,17 +175,26 @@ fn a_suspension_ignores_commits_before_its_step_and_completes_when_the_stage_end
     run.all_step(Phase::Stage1, 0..2, generation);
     assert!(!run.commit(w0, Phase::Stage1, 2, generation), "mid-stage");
     assert!(run.step(w0, Phase::Stage1, 2, generation));
-    assert!(!run.state.suspends(w0, generation, 2), "not requested yet");
+    assert_eq!(
+        run.state.suspends(w0, generation, 2),
+        SuspendAnswer::Continue,
+        "not requested yet"
+    );
     run.state.request_suspension();
     assert!(run.step(w1, Phase::Stage1, 2, generation));
-    assert!(
-        !run.state.suspends(w1, generation, 2),
+    assert_eq!(
+        run.state.suspends(w1, generation, 2),
+        SuspendAnswer::Continue,
         "rank 0 goes on to step 3, so rank 1 must too"
     );
     for worker in [w0, w1] {
         assert!(!run.state.suspension_complete(), "worker {worker} not told");
         assert!(run.step(worker, Phase::Stage1, 3, generation));
-        assert!(run.state.suspends(worker, generation, 3));
+        assert_eq!(
+            run.state.suspends(worker, generation, 3),
+            SuspendAnswer::ChecksumNext,
+            "the point (step 4) is past the stage's end; the notice comes all the same"
+        );
     }
     assert!(
         !run.state.suspension_complete(),
@@ -203,12 +212,27 @@ fn a_suspension_mid_stage_completes_once_rank_0_commits_the_step_every_rank_hear
     assert!(run.step(w0, Phase::Stage1, 0, generation));
     run.state.request_suspension();
     assert!(run.step(w1, Phase::Stage1, 0, generation));
-    assert!(!run.state.suspends(w1, generation, 0));
-    run.all_step(Phase::Stage1, 1..2, generation);
-    assert!(run.state.suspends(w1, generation, 1));
+    assert_eq!(
+        run.state.suspends(w1, generation, 0),
+        SuspendAnswer::Continue
+    );
+    run.all_step(Phase::Stage1, 1..3, generation);
+    for worker in [w1, w0] {
+        assert_eq!(
+            run.state.suspends(worker, generation, 1),
+            SuspendAnswer::ChecksumNext
+        );
+    }
+    assert_eq!(
+        run.state.suspends(w1, generation, 2),
+        SuspendAnswer::Suspend
+    );
     assert!(!run.state.suspension_complete(), "rank 0 not told");
-    assert!(run.state.suspends(w0, generation, 1));
+    assert_eq!(
+        run.state.suspends(w0, generation, 2),
+        SuspendAnswer::Suspend
+    );
     assert!(!run.state.suspension_complete(), "no commit yet");
-    assert!(!run.commit(w0, Phase::Stage1, 2, generation), "mid-stage");
+    assert!(!run.commit(w0, Phase::Stage1, 3, generation), "mid-stage");
     assert!(run.state.suspension_complete());
 }
