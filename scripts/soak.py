@@ -30,8 +30,9 @@ of worker 0's ring traffic, and fails on any broken invariant:
   exits          no process exited except those the schedule killed (or after the job ended)
   token          the job token never crossed worker 0's collective port (and lanes did)
 
-It prints the seed, the faults by kind, what each cost (seconds until the job moved past the
-step it was at when the fault began) and the steps redone, as key=value lines.
+It prints the seed, the faults by kind, what each cost (seconds from its start until the job
+moved past the step it was on, read from the coordinator's /metrics every quarter second) and
+the steps redone, as key=value lines.
 
 Run it through scripts/soak.sh (root: namespaces, tc and tcpdump).
 """
@@ -323,9 +324,9 @@ def run_schedule(processes, injector, faults, window_s, finish_limit_s):
                 fault.ended = True
                 injector.end(fault)
         for fault in faults:
-            if fault.started and fault.ended and fault.cost_s is None and best is not None:
-                if best > (fault.began_at_progress or -1):
-                    fault.cost_s = max(0.0, now - fault.start)
+            moved = best is not None and best > (fault.began_at_progress or -1)
+            if fault.started and fault.cost_s is None and moved:
+                fault.cost_s = max(0.0, now - fault.start)
         over = processes.coordinator.poll() == 0 and processes.coordinator.pid not in processes.expected_exit
         processes.check_exits()
         if over and all(f.ended or not f.started for f in faults):
@@ -405,7 +406,7 @@ def main():
     args.dir.mkdir(parents=True, exist_ok=True)
     run(str(args.binaries / "xfactor-local"), "--dir", str(args.dir), "--prepare-only", "--workers", str(WORKERS),
         "--listen-host", HOST_IP, "--port", str(COORDINATOR_PORT), "--stage1-steps", str(args.stage1_steps),
-        "--stage2-steps", str(args.stage2_steps), "--checkpoint-every", "10", "--no-evaluate")
+        "--stage2-steps", str(args.stage2_steps), "--checkpoint-every", "20", "--no-evaluate")
     config = args.dir / "cluster.yaml"
     yaml = config.read_text()
     token = re.search(r"^  token: (\S+)$", yaml, re.M).group(1)

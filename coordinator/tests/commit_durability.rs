@@ -11,7 +11,7 @@ use coordinator::service::CoordinatorService;
 use proto::v1::coordinator_client::CoordinatorClient;
 use proto::v1::{
     Assignment, AwaitAssignmentRequest, CheckpointCommit, RegisterReply, RegisterRequest,
-    StatusRequest, assignment,
+    StatusRequest, StepReport, assignment,
 };
 use settings::Phase;
 use settings::commit::{CommitFile, CommitManifest, MANIFEST_NAME};
@@ -134,6 +134,25 @@ async fn a_commit_whose_job_json_write_fails_is_refused_and_leaves_the_job_where
         train.checkpoint_prefix, assignment.generation
     );
     write_checkpoint(std::path::Path::new(&location));
+    // The only rank vouches for the parameters of the step it commits.
+    let report = StepReport {
+        worker_id: registered.worker_id,
+        generation: assignment.generation,
+        phase: proto::v1::Phase::Stage1 as i32,
+        step: 0,
+        parameter_checksum: 7,
+        checksum_computed: true,
+        session: registered.session.clone(),
+        ..StepReport::default()
+    };
+    assert!(
+        client
+            .report_step(report)
+            .await
+            .unwrap()
+            .into_inner()
+            .generation_current
+    );
     // A directory where job.json goes: the store refuses the write.
     let state = dir.path().join("job.json");
     let _ = std::fs::remove_file(&state);

@@ -47,6 +47,7 @@ fn help_lists_every_flag_with_its_default() {
             ("--repeats", Some("5")),
             ("--threads", Some("1")),
             ("--lanes", Some("1")),
+            ("--tls-dir", None),
             ("--chunk-values", None),
         ],
     );
