@@ -385,7 +385,15 @@ def check(report, records, steps_by_stage, capture, token, unexpected):
     return broken
 
 
+def stop_on_signal(number, _frame):
+    """SIGTERM or SIGINT (ignored by background jobs otherwise) end the soak through its
+    clean-up: processes killed, namespaces and the bridge removed."""
+    raise SystemExit(f"soak: stopped by signal {number}")
+
+
 def main():
+    signal.signal(signal.SIGTERM, stop_on_signal)
+    signal.signal(signal.SIGINT, stop_on_signal)
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--minutes", type=float, default=20)

@@ -60,6 +60,21 @@ impl JobState {
         self.steps.take_sealed(all)
     }
 
+    /// Step records for the history writer up to the step `commit` saves in `generation`:
+    /// see [`super::steps::StepLog::take_through`].
+    pub fn take_history_through(
+        &mut self,
+        commit: &super::Commit,
+        generation: u64,
+    ) -> Vec<StepRecord> {
+        match commit.step.checked_sub(1) {
+            Some(step) if commit.phase.is_training() => {
+                self.steps.take_through(commit.phase, step, generation)
+            }
+            _ => Vec::new(),
+        }
+    }
+
     /// Takes back the step records an earlier coordinator of this job wrote to the history, so
     /// the report and the curves start from the job's first step: see
     /// [`super::steps::StepLog::restore`].

@@ -128,6 +128,22 @@ impl StepLog {
         } else {
             self.records.len().saturating_sub(2)
         };
+        self.take_until(end)
+    }
+
+    /// Records not handed out yet up to and including that of `step` of `phase` in
+    /// `generation` (none when it is not in memory): a commit's step and every one before it,
+    /// which must be in the history before the commit is (every rank has reported the
+    /// committed step: its checksums verified it).
+    pub fn take_through(&mut self, phase: Phase, step: u64, generation: u64) -> Vec<StepRecord> {
+        match self.index.get(&(phase, step, generation)) {
+            Some(&position) => self.take_until(position + 1),
+            None => Vec::new(),
+        }
+    }
+
+    /// Hands out the records from the last handed out to `end` (exclusive).
+    fn take_until(&mut self, end: usize) -> Vec<StepRecord> {
         let taken = self
             .records
             .get(self.sealed..end)
@@ -235,6 +251,35 @@ mod tests {
         assert_eq!(curve[&(steps - 1)].loss, (steps - 1) as f32);
         let last = log.retained().last().unwrap();
         assert_eq!((last.step, last.checksums.len()), (steps - 1, 1));
+    }
+
+    #[test]
+    fn a_commits_step_and_every_one_before_it_are_handed_out_at_once_and_only_once() {
+        let mut log = StepLog::default();
+        for step in 0..10 {
+            log.record(Phase::Stage1, step, 1).loss = step as f32;
+        }
+        let through: Vec<u64> = log
+            .take_through(Phase::Stage1, 9, 1)
+            .iter()
+            .map(|r| r.step)
+            .collect();
+        assert_eq!(
+            through,
+            (0..10).collect::<Vec<_>>(),
+            "the newest two are not held back"
+        );
+        assert!(
+            log.take_sealed(true).is_empty(),
+            "nothing is handed out twice"
+        );
+        assert!(
+            log.take_through(Phase::Stage1, 3, 2).is_empty(),
+            "another generation's step is not in memory"
+        );
+        log.record(Phase::Stage1, 10, 1);
+        let rest: Vec<u64> = log.take_sealed(true).iter().map(|r| r.step).collect();
+        assert_eq!(rest, [10]);
     }
 
     #[test]

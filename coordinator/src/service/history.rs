@@ -56,21 +56,24 @@ impl History {
     }
 
     /// Adds `records` and writes what changed: every segment they completed, then the one
-    /// still growing. On a failed write the records stay and go with the next call.
+    /// still growing. On a failed write every record not yet written stays, in order, and
+    /// goes with the next call (none is dropped at a segment's end).
     pub async fn append(&mut self, records: &[StepRecord]) -> Result<(), StoreError> {
-        for record in records {
-            if self.lines.len() == SEGMENT_RECORDS {
-                self.write().await?;
-                self.segment += 1;
-                self.lines.clear();
-            }
-            // A StepRecord is plain numbers and maps: serialising it cannot fail.
-            self.lines
-                .push(serde_json::to_string(record).unwrap_or_default());
-            self.unwritten = true;
+        // A StepRecord is plain numbers and maps: serialising it cannot fail.
+        self.lines.extend(
+            records
+                .iter()
+                .map(|record| serde_json::to_string(record).unwrap_or_default()),
+        );
+        self.unwritten |= !records.is_empty();
+        while self.lines.len() > SEGMENT_RECORDS {
+            self.write(SEGMENT_RECORDS).await?;
+            self.lines.drain(..SEGMENT_RECORDS);
+            self.segment += 1;
         }
         if self.unwritten {
-            self.write().await?;
+            self.write(self.lines.len()).await?;
+            self.unwritten = false;
         }
         Ok(())
     }
@@ -100,14 +103,13 @@ impl History {
         Ok(records)
     }
 
-    async fn write(&mut self) -> Result<(), StoreError> {
-        let mut text = self.lines.join("\n");
+    /// Writes the first `count` lines as the current segment.
+    async fn write(&self, count: usize) -> Result<(), StoreError> {
+        let mut text = self.lines[..count].join("\n");
         text.push('\n');
         self.root
             .write(&segment_path(self.segment), text.into_bytes())
-            .await?;
-        self.unwritten = false;
-        Ok(())
+            .await
     }
 }
 

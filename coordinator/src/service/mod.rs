@@ -46,6 +46,9 @@ pub struct CoordinatorService {
     ring_secrets: Arc<sessions::RingSecrets>,
     /// This coordinator's hold on the checkpoint URI.
     lease: Arc<lease::Lease>,
+    /// The step history and TensorBoard writers, once opened (`run`): the tick writes the
+    /// steps as they seal, and a commit writes every step up to its own before `job.json`.
+    recorders: Arc<std::sync::OnceLock<Arc<Mutex<Recorders>>>>,
 }
 
 /// Longest wait for rank 0's commit once the job is being suspended.
@@ -177,6 +180,7 @@ impl CoordinatorService {
             sessions: Arc::default(),
             ring_secrets: Arc::default(),
             lease: Arc::new(lease),
+            recorders: Arc::default(),
         })
     }
 
@@ -320,6 +324,7 @@ impl CoordinatorService {
         // The history first: a restarted coordinator's workers re-register within a fraction
         // of a second and report steps, which must land after the steps read back.
         let recorders = self.open_recorders().await?;
+        let recorders = self.recorders.get_or_init(|| Arc::new(recorders)).clone();
         let server = self.start_server(token).await?;
         let fenced = tokio::select! {
             lost = self.tick_until_done(&server.health, &recorders) => lost,

@@ -347,6 +347,24 @@ impl CoordinatorService {
         }
     }
 
+    /// Writes `steps`, a commit's step and those before it, to the step history before the
+    /// commit goes into `job.json`: a coordinator killed between the two would otherwise
+    /// resume past steps its history never got, and they would be missing for good.
+    async fn write_history(&self, steps: &[crate::job::StepRecord]) -> Result<(), Status> {
+        let Some(recorders) = self.recorders.get() else {
+            return Ok(());
+        };
+        let mut recorders = recorders.lock().await;
+        recorders.history.append(steps).await.map_err(|e| {
+            Status::unavailable(format!(
+                "recording the step history before the commit failed: {}",
+                chain(&e)
+            ))
+        })?;
+        recorders.board.record_steps(steps);
+        Ok(())
+    }
+
     /// Records a verified commit: `job.json` is written first, with the commit in it, and
     /// the job's memory changes only once that write succeeded, so memory never holds a
     /// commit the store does not. The lock on `job.json`'s version is held throughout, so no
@@ -371,7 +389,7 @@ impl CoordinatorService {
         };
         self.await_checksums(worker, &commit, generation).await?;
         let mut version = self.durable_version.lock().await;
-        let after = {
+        let (after, steps) = {
             let mut state = self.state.lock().await;
             let after = state.durable_after_commit(worker, &commit, generation);
             if let Err(refusal) = &after
@@ -379,12 +397,17 @@ impl CoordinatorService {
             {
                 self.changed.notify_waiters();
             }
-            after
+            let steps = match after {
+                Ok(_) => state.take_history_through(&commit, generation),
+                Err(_) => Vec::new(),
+            };
+            (after, steps)
         };
         let after = match after {
             Ok(after) => after,
             Err(refusal) => return refuse(refusal.to_string()),
         };
+        self.write_history(&steps).await?;
         write_durable_held(&self.checkpoints, &after, &mut version)
             .await
             .map_err(|e| {
