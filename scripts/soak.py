@@ -53,9 +53,24 @@ from pathlib import Path
 import boto3
 
 WORKERS = 4
+# The instance (`--instance`) picks the subnet 10.78.<instance>.0/24 and the interface and
+# namespace names, so several soaks can run side by side.
+INSTANCE = 0
 BRIDGE = "xfsoak0"
 HOST_IP = "10.78.0.254"
 FLOOD_IPS = ["10.78.0.200", "10.78.0.201"]
+
+
+def use_instance(instance):
+    global INSTANCE, BRIDGE, HOST_IP, FLOOD_IPS
+    INSTANCE = instance
+    BRIDGE = f"xfsoak{instance}"
+    HOST_IP = f"10.78.{instance}.254"
+    FLOOD_IPS = [f"10.78.{instance}.200", f"10.78.{instance}.201"]
+
+
+def veth(index):
+    return f"xf{INSTANCE}v{index}"
 COLLECTIVE_PORT = 7300
 COORDINATOR_PORT = 50551
 METRICS_PORT = 50552
@@ -75,11 +90,11 @@ GLOBAL_KINDS = {"store_outage", "coordinator_kill"}
 
 
 def worker_ip(index):
-    return f"10.78.0.{index + 1}"
+    return f"10.78.{INSTANCE}.{index + 1}"
 
 
 def namespace(index):
-    return f"xfs{index}"
+    return f"xfs{INSTANCE}n{index}"
 
 
 def run(*command, check=True):
@@ -147,8 +162,8 @@ class Network:
         for i in range(WORKERS):
             ns = namespace(i)
             run("ip", "netns", "add", ns)
-            run("ip", "link", "add", f"xfsv{i}", "type", "veth", "peer", "name", "eth0", "netns", ns)
-            run("ip", "link", "set", f"xfsv{i}", "master", BRIDGE, "up")
+            run("ip", "link", "add", veth(i), "type", "veth", "peer", "name", "eth0", "netns", ns)
+            run("ip", "link", "set", veth(i), "master", BRIDGE, "up")
             run("ip", "-n", ns, "addr", "add", f"{worker_ip(i)}/24", "dev", "eth0")
             run("ip", "-n", ns, "link", "set", "eth0", "up")
             run("ip", "-n", ns, "link", "set", "lo", "up")
@@ -402,7 +417,9 @@ def main():
     parser.add_argument("--dir", type=Path)
     parser.add_argument("--binaries", type=Path)
     parser.add_argument("--plan-only", action="store_true", help="print the schedule and stop")
+    parser.add_argument("--instance", type=int, default=0, help="0-9: runs beside other instances")
     args = parser.parse_args()
+    use_instance(args.instance)
     window_s = args.minutes * 60
     faults = draw_schedule(args.seed, window_s)
     print(f"soak=config seed={args.seed} window_s={window_s:.0f} faults_planned={len(faults)} "
@@ -432,7 +449,7 @@ def main():
         network.up()
         processes.start_moto(sys.executable)
         processes.start_coordinator()
-        tcpdump = subprocess.Popen(["tcpdump", "-i", "xfsv0", "-U", "-s", "0", "-w", str(capture),
+        tcpdump = subprocess.Popen(["tcpdump", "-i", veth(0), "-U", "-s", "0", "-w", str(capture),
                                     f"tcp port {COLLECTIVE_PORT}"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         for i in range(WORKERS):
             processes.start_worker(i)
@@ -443,11 +460,13 @@ def main():
         processes.check_exits()
         records = read_history(endpoint)
     finally:
-        if tcpdump is not None:
-            tcpdump.terminate()
-            tcpdump.wait()
-        processes.stop_all()
-        network.down()
+        # Each step on its own, so that the namespaces go whatever failed before them.
+        for clean_up in (lambda: tcpdump is not None and (tcpdump.terminate(), tcpdump.wait()),
+                         processes.stop_all, network.down):
+            try:
+                clean_up()
+            except (OSError, subprocess.SubprocessError, SystemExit) as error:
+                print(f"soak: clean-up step failed: {error}", file=sys.stderr)
     report = json.loads((args.dir / "report.json").read_text())
     finished = report.get("outcome") == "finished"
     broken = check(report, records, {1: args.stage1_steps, 2: args.stage2_steps}, capture, token,
@@ -458,9 +477,13 @@ def main():
         cost = "unmeasured" if fault.cost_s is None else f"{fault.cost_s:.1f}"
         print(f"soak=fault kind={fault.kind} target={fault.target} t={fault.start:.1f} duration_s={fault.duration:.1f} cost_s={cost}")
     redone = len(records) - len({(r["stage"], r["step"]) for r in records})
+    # The report holds only the last coordinator's counts; its log spans every restart.
+    log = (args.dir / "coordinator.log").read_text(errors="replace")
+    mismatches = log.count("checksums differ across ranks")
+    rollbacks = log.count("abandoning generation") + log.count("the group rolls back")
     print(f"soak=result seed={args.seed} seconds={seconds:.0f} faults={len(injected)} kinds={sum(1 for v in kinds.values() if v)} "
           + " ".join(f"{k}={v}" for k, v in kinds.items())
-          + f" steps_redone={redone} restarts={report.get('restarts')} mismatches={len(report.get('checksum_mismatches', []))} "
+          + f" steps_redone={redone} generations_ended={rollbacks} mismatches={mismatches} "
           f"commits={len(report.get('commits', []))} worker_starts={processes.starts} broken={len(broken)}")
     for line in broken:
         print(f"soak=broken {line}")

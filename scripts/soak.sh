@@ -2,6 +2,7 @@
 # The soak under random faults (scripts/soak.py says what it injects and what it checks).
 #
 #   sudo -E scripts/soak.sh [--no-build] [--seed N] [--minutes M] [--stage1-steps N] [--stage2-steps N]
+#                           [--instance I]   (0-9: its own subnet and names, to run beside others)
 #
 # Needs root (network namespaces, tc, tcpdump). Installs tcpdump if missing; moto's S3 server
 # comes from scripts/setup.sh. --minutes is the window in which faults start; the job must
@@ -14,7 +15,7 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 source scripts/env.sh
 
-build=1 seed=1 minutes=20 stage1="" stage2=""
+build=1 seed=1 minutes=20 stage1="" stage2="" instance=0
 while [ $# -gt 0 ]; do
     case "$1" in
         --no-build) build=0 ;;
@@ -22,6 +23,7 @@ while [ $# -gt 0 ]; do
         --minutes) minutes=$2; shift ;;
         --stage1-steps) stage1=$2; shift ;;
         --stage2-steps) stage2=$2; shift ;;
+        --instance) instance=$2; shift ;;
         *) echo "soak: unknown argument $1" >&2; exit 2 ;;
     esac
     shift
@@ -46,4 +48,4 @@ stage2=${stage2:-$(( stage1 / 4 ))}
 dir=$(mktemp -d /tmp/xfactor-soak.XXXXXX)
 echo "soak: seed $seed, logs in $dir" >&2
 "$python" scripts/soak.py --seed "$seed" --minutes "$minutes" --stage1-steps "$stage1" \
-    --stage2-steps "$stage2" --dir "$dir" --binaries "$CARGO_TARGET_DIR/release"
+    --stage2-steps "$stage2" --dir "$dir" --binaries "$CARGO_TARGET_DIR/release" --instance "$instance"
