@@ -28,12 +28,7 @@ pub(super) enum Verification {
 impl JobState {
     /// Whether the checksums of the step `commit` saves, sent by the `world_size` ranks of
     /// `generation`, are all in and equal. Only training commits hold parameters to verify.
-    pub(super) fn verification(
-        &self,
-        commit: &Commit,
-        generation: u64,
-        world_size: usize,
-    ) -> Verification {
+    fn verification(&self, commit: &Commit, generation: u64, world_size: usize) -> Verification {
         if !commit.phase.is_training() {
             return Verification::Verified;
         }
