@@ -20,7 +20,8 @@
 # ranks on loopback: copy, local reduction, ring, update, checksum, in seconds and GB/s; on
 # one lane first (its copy, upload, update and checksum are what every cell then also counts:
 # `full_size_host_s`, `efficiency_counting_host`), then the gRPC stream, bf16, and the ring
-# over TLS (the stream with the test certificates: what a job with `tls:` runs).
+# over TLS with the test certificates, on one TLS lane (what a job with `tls:` runs) and on
+# the gRPC stream. `scripts/bench-tls.sh` sets a TLS lane beside a plain one, ring only.
 # Any failed, missing or refused cell fails the benchmark.
 #
 # Usage: sudo -E scripts/bench-scaling.sh [--smoke] [--no-build] [--ranks 2,4,8]
@@ -199,8 +200,8 @@ cell() {
 
 # Unscaled and unshaped: two ranks on loopback with the paper's 1.22 GB and no compute, one
 # I/O thread each (the worker daemon's), with wire $1 on $2 lanes (0: the gRPC stream, as
-# the peer), and with $3 = tls the ring over TLS (the gRPC stream with the test certificates
-# of proto/testdata/tls: what a job with `tls:` runs).
+# the peer), and with $3 = tls the ring over TLS (the test certificates of
+# proto/testdata/tls; on one lane, what a job with `tls:` runs by default).
 host_path() {
     local peers="127.0.0.1:7201,127.0.0.1:7202" pids=() tls=()
     if [ "${3:-}" = tls ]; then tls=(--tls-dir proto/testdata/tls); fi
@@ -252,5 +253,6 @@ if [ "$HOST_PATH" = 1 ]; then
     host_path f32 0
     host_path bf16 0
     host_path bf16 1
+    host_path f32 1 tls
     host_path f32 0 tls
 fi

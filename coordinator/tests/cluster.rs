@@ -110,8 +110,19 @@ fn two_workers_run_both_stages_in_lockstep_then_one_evaluates() {
 /// A small in-memory job of `workers` processes with `micro` samples per micro-batch, each
 /// worker started with `--devices devices`; its report, final weights and folder.
 fn train_small(workers: usize, micro: u64, devices: usize) -> (Value, FlaxTensors, TempDir) {
+    train_small_with(workers, micro, devices, None)
+}
+
+/// As [`train_small`], under TLS with the certificates in `tls` when given.
+fn train_small_with(
+    workers: usize,
+    micro: u64,
+    devices: usize,
+    tls: Option<std::path::PathBuf>,
+) -> (Value, FlaxTensors, TempDir) {
     let dir = tempfile::tempdir().unwrap();
     let mut job = small_job(dir.path(), workers);
+    job.tls = tls;
     job.in_memory = true;
     job.micro_batch = micro;
     job.stage1_steps = 2;
@@ -155,6 +166,31 @@ fn assert_trained_alike(a: (&Value, &FlaxTensors), b: (&Value, &FlaxTensors)) {
     println!("weights differ by up to {worst:e}, {mean:e} on average over {count}");
     assert!(worst < 5e-5, "weights differ by up to {worst}");
     assert!(mean < 1e-7, "weights differ by {mean} on average");
+}
+
+/// Under `tls:` the coordinator's RPCs and the ring's lanes run TLS; the lanes carry the same
+/// sums, so the job trains to the same bits as without.
+#[test]
+fn a_job_under_tls_trains_on_tls_lanes_to_the_same_bits_as_without() {
+    let certificates =
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../proto/testdata/tls");
+    let (tls_report, tls_weights, tls_dir) = train_small_with(2, 4, 1, Some(certificates));
+    let (plain_report, plain_weights, _plain_dir) = train_small(2, 4, 1);
+    let losses = |report: &Value| -> Vec<Value> {
+        let steps = report["steps"].as_array().unwrap();
+        steps.iter().map(|step| step["loss"].clone()).collect()
+    };
+    assert_eq!(losses(&tls_report), losses(&plain_report));
+    for name in plain_weights.names_with_prefix("") {
+        let (x, y) = (
+            tls_weights.get(name).unwrap(),
+            plain_weights.get(name).unwrap(),
+        );
+        let bits = |values: &[f32]| values.iter().map(|v| v.to_bits()).collect::<Vec<_>>();
+        assert_eq!(bits(&x.values), bits(&y.values), "{name}");
+    }
+    let worker_log = std::fs::read_to_string(tls_dir.path().join("worker-0.log")).unwrap();
+    assert!(!worker_log.contains("refused"), "{worker_log}");
 }
 
 #[test]

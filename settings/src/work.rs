@@ -63,8 +63,8 @@ pub struct TrainWork {
     pub devices: DeviceSet,
     /// How the ring carries the gradients between ranks.
     pub wire: WireFormat,
-    /// TCP lanes the ring runs on when the job runs without TLS, each on a thread of its
-    /// own (`workers.allreduce_lanes`); 0: one gRPC stream.
+    /// TCP lanes the ring runs on (TLS sessions when the job runs TLS), each on a thread of
+    /// its own (`workers.allreduce_lanes`); 0: one gRPC stream.
     pub lanes: usize,
 }
 

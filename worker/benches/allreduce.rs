@@ -1,6 +1,6 @@
 //! All-reduce time and algorithmic bandwidth (buffer size / time) between two worker processes
 //! on loopback, for 1, 16, 64 and 100 MB of float32, on one TCP lane (the default transport)
-//! and on the gRPC stream (the transport under TLS, and the peer); then the per-step time of the benchmark
+//! and on the gRPC stream (the peer); then the per-step time of the benchmark
 //! model trained by 1 and by 2 worker processes (through the real coordinator), and the share
 //! of the 2-worker step spent in the all-reduce.
 //!

@@ -70,12 +70,11 @@ impl WorkerTls {
         let Some((cert, key)) = &self.identity else {
             return Ok(None);
         };
-        let server = proto::tls::server_config(cert, key)?;
-        proto::tls::client_config(&self.ca, self.domain.as_deref().unwrap_or("localhost"))?;
-        Ok(Some(PeerTls {
-            server,
-            ca: self.ca.clone(),
-            domain: self.domain.clone(),
-        }))
+        Ok(Some(PeerTls::from_files(
+            cert,
+            key,
+            &self.ca,
+            self.domain.clone(),
+        )?))
     }
 }

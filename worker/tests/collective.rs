@@ -27,12 +27,15 @@ fn plain() -> Link {
 fn with_test_certificate() -> Link {
     let tls = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../proto/testdata/tls");
     Link {
-        tls: Some(PeerTls {
-            server: proto::tls::server_config(&tls.join("server.pem"), &tls.join("server.key"))
-                .unwrap(),
-            ca: tls.join("ca.pem"),
-            domain: None,
-        }),
+        tls: Some(
+            PeerTls::from_files(
+                &tls.join("server.pem"),
+                &tls.join("server.key"),
+                &tls.join("ca.pem"),
+                None,
+            )
+            .unwrap(),
+        ),
         ..plain()
     }
 }

@@ -380,8 +380,9 @@ pub struct WorkersConfig {
     /// How the ring carries gradients: `f32` (every bit) or `bf16` (half the bytes, summed
     /// in float32).
     pub allreduce_wire: WireFormat,
-    /// TCP lanes of the ring, each on a thread of its own, when the job runs without TLS
-    /// (1, the default; at most 64); 0: one gRPC stream, as under TLS.
+    /// TCP lanes of the ring, each on a thread of its own and each a TLS session of its own
+    /// when the job runs `tls:` (1, the default; at most 64); 0: one gRPC stream (only under
+    /// `tls:`, since the stream presents the job token).
     pub allreduce_lanes: usize,
 }
 

@@ -94,6 +94,9 @@ pub struct LocalJob {
     /// Store settings as environment variables (`AWS_ENDPOINT`, `AWS_ALLOW_HTTP`, ...): given
     /// to the coordinator and worker processes, and used by the harness's own store access.
     pub store_env: Vec<(String, String)>,
+    /// A folder with `server.pem`, `server.key` and `ca.pem` (valid for 127.0.0.1): the job
+    /// runs TLS (`tls:` in the YAML), and every worker brings that certificate for its ring.
+    pub tls: Option<PathBuf>,
 }
 
 impl LocalJob {
@@ -134,6 +137,7 @@ impl LocalJob {
             device: DeviceChoice::Cpu,
             allreduce_wire: WireFormat::F32,
             checksum_every: None,
+            tls: None,
         }
     }
 
@@ -336,6 +340,12 @@ impl LocalJob {
             self.evaluation
                 .write_yaml(self.seed, &self.departures(), &mut yaml);
         }
+        self.write_workers_and_tls(&mut yaml);
+        yaml
+    }
+
+    /// The YAML's `workers:` section, and `tls:` when the job runs it.
+    fn write_workers_and_tls(&self, yaml: &mut String) {
         let _ = writeln!(
             yaml,
             "workers:\n  expected: {}\n  minimum: {}\n  device: {}\n  threads: 1\n  heartbeat_interval_s: 0.25\n  heartbeat_timeout_s: 3\n  regroup_grace_s: 1\n  quorum_timeout_s: 120\n  stall_timeout_s: {}",
@@ -347,7 +357,14 @@ impl LocalJob {
         if let Some(every) = self.checksum_every {
             let _ = writeln!(yaml, "  checksum_every: {every}");
         }
-        yaml
+        if let Some(tls) = &self.tls {
+            let _ = writeln!(
+                yaml,
+                "tls:\n  cert: {}\n  key: {}",
+                tls.join("server.pem").display(),
+                tls.join("server.key").display()
+            );
+        }
     }
 
     /// Starts the coordinator process (its log is appended to `coordinator.log`, so a
@@ -385,9 +402,19 @@ impl LocalJob {
                 .arg("--metrics-address")
                 .arg(format!("127.0.0.1:{port}"));
         }
+        if let Some(tls) = &self.tls {
+            command
+                .arg("--tls-ca")
+                .arg(tls.join("ca.pem"))
+                .arg("--tls-cert")
+                .arg(tls.join("server.pem"))
+                .arg("--tls-key")
+                .arg(tls.join("server.key"));
+        }
+        let scheme = if self.tls.is_some() { "https" } else { "http" };
         Ok(command
             .arg("--coordinator")
-            .arg(format!("http://127.0.0.1:{}", self.port))
+            .arg(format!("{scheme}://127.0.0.1:{}", self.port))
             .arg("--token")
             .arg(self.token())
             .arg("--name")

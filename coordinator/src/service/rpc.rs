@@ -448,7 +448,7 @@ fn check_ring_tls(job_tls: bool, worker_ring_tls: bool) -> Result<(), Status> {
             "this job runs TLS (`tls:` in its YAML), so its ring runs over TLS too: start the worker with --tls-cert and --tls-key beside --tls-ca",
         )),
         (false, true) => Err(Status::failed_precondition(
-            "this job runs without TLS (no `tls:` in its YAML), so its ring runs on lanes: start the worker without --tls-cert and --tls-key, or give the job `tls:`",
+            "this job runs without TLS (no `tls:` in its YAML), so its ring runs on plain lanes: start the worker without --tls-cert and --tls-key, or give the job `tls:`",
         )),
         _ => Ok(()),
     }

@@ -31,7 +31,7 @@ pub struct RankArgs {
         value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(1..)
     )]
     pub threads: usize,
-    /// TCP lanes of the ring, each on a thread of its own (0: the gRPC stream, as under TLS)
+    /// TCP lanes of the ring, each on a thread of its own (0: the gRPC stream)
     #[arg(
         long,
         value_name = "N",
@@ -39,9 +39,9 @@ pub struct RankArgs {
         value_parser = clap::builder::RangedU64ValueParser::<usize>::new().range(0..=crate::collective::MAX_LANES as u64)
     )]
     pub lanes: usize,
-    /// Runs the ring over TLS (the gRPC stream, as a job with `tls:` does) with the
-    /// certificate `server.pem`, its key `server.key` and the CA `ca.pem` in this folder,
-    /// valid for `localhost`
+    /// Runs the ring over TLS (on TLS lanes, or the gRPC stream with `--lanes 0`, as a job
+    /// with `tls:` does) with the certificate `server.pem`, its key `server.key` and the CA
+    /// `ca.pem` in this folder, valid for `localhost`
     #[arg(long, value_name = "DIR")]
     pub tls_dir: Option<std::path::PathBuf>,
 }
@@ -67,11 +67,12 @@ impl RankArgs {
         let Some(dir) = &self.tls_dir else {
             return Ok(None);
         };
-        Ok(Some(PeerTls {
-            server: proto::tls::server_config(&dir.join("server.pem"), &dir.join("server.key"))?,
-            ca: dir.join("ca.pem"),
-            domain: Some("localhost".into()),
-        }))
+        Ok(Some(PeerTls::from_files(
+            &dir.join("server.pem"),
+            &dir.join("server.key"),
+            &dir.join("ca.pem"),
+            Some("localhost".into()),
+        )?))
     }
 
     /// Serves this rank's Collective service and joins the benchmark's ring (generation 1);

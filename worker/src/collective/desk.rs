@@ -1,14 +1,14 @@
 //! The collective port's front desk: every connection is sorted by its first bytes into a
-//! lane, a gRPC connection (HTTP/2's preface or TLS) or a stranger's (closed), and a lane is
-//! admitted only once it has proved that it holds the left neighbour's ring secret
-//! (`handshake.rs`).
+//! lane (plain, or TLS when the ring runs it), a gRPC connection (HTTP/2's preface or TLS) or
+//! a stranger's (closed), and a lane is admitted only once it has proved that it holds the
+//! left neighbour's ring secret (`handshake.rs`).
 //!
 //! Anyone who can reach the port can connect to it, so what a stranger can make a rank hold
 //! is bounded before anything is authenticated: at most [`MAX_HANDSHAKES`] connections are
 //! being sorted or handshaking at once, at most [`MAX_HANDSHAKES_PER_ADDRESS`] of them from one
 //! address (a connection past either limit is closed at once, and the neighbour's own lanes,
-//! from its own address, keep their room); each has [`HANDSHAKE_WAIT`] to show itself, say
-//! hello and answer the challenge; a handshake message is at most 1 KiB; only whole openings
+//! from its own address, keep their room); each has [`HANDSHAKE_WAIT`] to show itself, finish
+//! its TLS handshake, say hello and answer the challenge; a handshake message is at most 1 KiB; only whole openings
 //! reach the gRPC server; and refusals are logged at most once per [`WARNING_INTERVAL`], with
 //! the count of those not logged.
 
@@ -20,7 +20,10 @@ use std::time::{Duration, Instant};
 use tokio::net::{TcpListener, TcpStream};
 use tokio::sync::mpsc;
 
-use super::opening::{LANE_MAGIC, answer, challenge, read_hello, refuse};
+use super::opening::{
+    HandshakeError, LANE_MAGIC, LaneStream, TLS_LANE_MAGIC, answer, challenge, read_hello,
+    read_magic, refuse,
+};
 use super::service::{AdmittedLane, Doors, MAX_LANES, Mailbox};
 
 /// Connections being sorted or handshaking at once, from everyone.
@@ -47,7 +50,7 @@ const TLS_HANDSHAKE: u8 = 0x16;
 /// are told apart by their first bytes.
 pub(super) struct LaneDesk {
     mailbox: Arc<Mailbox>,
-    tls: bool,
+    tls: Option<Arc<rustls::ServerConfig>>,
     handshakes: Mutex<InProgress>,
     refusals: Warnings,
 }
@@ -81,7 +84,7 @@ impl Drop for Slot {
 /// What a connection opened with.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 enum Opening {
-    /// [`LANE_MAGIC`].
+    /// [`LANE_MAGIC`] or, for a TLS lane, [`TLS_LANE_MAGIC`].
     Lane,
     /// HTTP/2's whole preface, or a TLS record (the gRPC server's TLS takes it from there).
     Grpc,
@@ -91,8 +94,8 @@ enum Opening {
 
 impl LaneDesk {
     /// The desk of a rank whose ring files lanes into `mailbox`; with `tls`, the ring runs
-    /// over TLS and lanes are refused.
-    pub(super) fn new(mailbox: Arc<Mailbox>, tls: bool) -> Self {
+    /// over TLS with these settings, and a plain lane is refused.
+    pub(super) fn new(mailbox: Arc<Mailbox>, tls: Option<Arc<rustls::ServerConfig>>) -> Self {
         Self {
             mailbox,
             tls,
@@ -165,15 +168,15 @@ impl LaneDesk {
         self.handshakes.lock().unwrap_or_else(|p| p.into_inner())
     }
 
-    /// Reads a lane's hello, challenges it, and hands a proven lane to its ring, which
-    /// answers it once taken. `slot` is held until the lane is handed on or refused.
-    async fn admit(self: Arc<Self>, mut stream: TcpStream, slot: Slot) {
-        let hello = match tokio::time::timeout(HANDSHAKE_WAIT, read_hello(&mut stream)).await {
-            Ok(Ok(hello)) => hello,
-            Ok(Err(reason)) => {
-                self.refusals.warn(&format!(
-                    "a lane connection sent no readable hello: {reason}"
-                ));
+    /// Reads a lane's magic, runs TLS when it asks for it, reads its hello, challenges it,
+    /// and hands a proven lane to its ring, which answers it once taken. `slot` is held until
+    /// the lane is handed on or refused.
+    async fn admit(self: Arc<Self>, tcp: TcpStream, slot: Slot) {
+        let opened = tokio::time::timeout(HANDSHAKE_WAIT, self.open(tcp)).await;
+        let (mut stream, hello) = match opened {
+            Ok(Ok(opened)) => opened,
+            Ok(Err(failed)) => {
+                self.refusals.warn(&failed.to_string());
                 return;
             }
             Err(_) => return,
@@ -208,12 +211,36 @@ impl LaneDesk {
         }
     }
 
+    /// A lane connection up to its hello: its magic, then TLS if it asked for it and this
+    /// rank's ring runs it (a lane that asks otherwise than the ring runs is refused, a
+    /// plain one with a reason), then its hello.
+    async fn open(
+        &self,
+        mut tcp: TcpStream,
+    ) -> Result<(LaneStream, proto::v1::LaneHello), OpeningFailed> {
+        let wants_tls = read_magic(&mut tcp).await?;
+        let mut stream = match (&self.tls, wants_tls) {
+            (None, false) => LaneStream::Plain(tcp),
+            (Some(config), true) => {
+                let session = tokio_rustls::TlsAcceptor::from(config.clone())
+                    .accept(tcp)
+                    .await
+                    .map_err(OpeningFailed::Tls)?;
+                LaneStream::Tls(Box::new(tokio_rustls::TlsStream::Server(session)))
+            }
+            (Some(_), false) => {
+                let _ = refuse(&mut tcp, &LaneRefusal::Tls.to_string()).await;
+                return Err(OpeningFailed::PlainToTls);
+            }
+            (None, true) => return Err(OpeningFailed::TlsToPlain),
+        };
+        let hello = read_hello(&mut stream).await?;
+        Ok((stream, hello))
+    }
+
     /// Where `hello`'s lane goes and the secret its dialler must prove, once this rank has
     /// joined its generation.
     async fn check(&self, hello: &proto::v1::LaneHello) -> Result<(Doors, String), LaneRefusal> {
-        if self.tls {
-            return Err(LaneRefusal::Tls);
-        }
         if hello.lanes == 0 || hello.lane >= hello.lanes || hello.lanes as usize > MAX_LANES {
             return Err(LaneRefusal::NoSuchLane {
                 lane: hello.lane,
@@ -227,11 +254,28 @@ impl LaneDesk {
     }
 }
 
+/// Why a lane connection never got as far as its hello (logged, rate-limited).
+#[derive(Debug, thiserror::Error)]
+enum OpeningFailed {
+    /// Its magic or hello could not be read.
+    #[error("a lane connection sent no readable hello: {0}")]
+    Unreadable(#[from] HandshakeError),
+    /// The TLS handshake failed.
+    #[error("a lane's TLS handshake failed: {0}")]
+    Tls(std::io::Error),
+    /// A plain lane to a ring that runs TLS (refused with the reason).
+    #[error("a plain lane was refused: this rank's ring runs over TLS")]
+    PlainToTls,
+    /// A TLS lane to a ring that runs without (closed: it cannot read a refusal).
+    #[error("a TLS lane was closed: this rank's ring runs without TLS")]
+    TlsToPlain,
+}
+
 /// Why a lane was not admitted (sent back as its challenge's refusal).
 #[derive(Debug, thiserror::Error)]
 enum LaneRefusal {
-    /// This rank's ring runs over TLS.
-    #[error("this rank's ring runs over TLS, which lanes do not")]
+    /// This rank's ring runs over TLS and the lane did not ask for it.
+    #[error("this rank's ring runs over TLS, and the lane is plain")]
     Tls,
     /// The lane's place is impossible.
     #[error("lane {lane} of {lanes} (at most {MAX_LANES} lanes)")]
@@ -300,13 +344,13 @@ fn classify(seen: &[u8]) -> Option<Opening> {
     if seen.first() == Some(&TLS_HANDSHAKE) {
         return Some(Opening::Grpc);
     }
-    if seen.starts_with(LANE_MAGIC) {
+    if seen.starts_with(LANE_MAGIC) || seen.starts_with(TLS_LANE_MAGIC) {
         return Some(Opening::Lane);
     }
     if seen.starts_with(HTTP2_PREFACE) {
         return Some(Opening::Grpc);
     }
-    if prefix_of(LANE_MAGIC) || prefix_of(HTTP2_PREFACE) {
+    if prefix_of(LANE_MAGIC) || prefix_of(TLS_LANE_MAGIC) || prefix_of(HTTP2_PREFACE) {
         return None;
     }
     Some(Opening::Neither)
@@ -320,6 +364,7 @@ mod tests {
     fn openings_are_sorted_only_once_whole() {
         assert_eq!(classify(b"XFLA"), None);
         assert_eq!(classify(b"XFLANE01"), Some(Opening::Lane));
+        assert_eq!(classify(b"XFLANE1S"), Some(Opening::Lane));
         assert_eq!(classify(b"PRI * HTTP/2.0"), None);
         assert_eq!(classify(HTTP2_PREFACE), Some(Opening::Grpc));
         assert_eq!(classify(&[TLS_HANDSHAKE, 3, 1]), Some(Opening::Grpc));
@@ -340,7 +385,7 @@ mod tests {
 
     #[test]
     fn handshakes_are_capped_per_address_and_in_all_and_slots_come_back() {
-        let desk = Arc::new(LaneDesk::new(Arc::new(Mailbox::default()), false));
+        let desk = Arc::new(LaneDesk::new(Arc::new(Mailbox::default()), None));
         let stranger: IpAddr = "10.0.0.9".parse().unwrap();
         let slots: Vec<Slot> = (0..MAX_HANDSHAKES_PER_ADDRESS)
             .map(|_| LaneDesk::enter(&desk, stranger).unwrap())

@@ -1,4 +1,5 @@
-//! The ring's lanes: plain TCP connections that carry chunks as views of the buffer.
+//! The ring's lanes: TCP connections (plain, or TLS sessions driven by hand: `carrier.rs`)
+//! that carry chunks as views of the buffer.
 //!
 //! Over gRPC every chunk is copied four times in user space (into its message, into the
 //! encoder's buffer, into the decoder's, and out into the sum), which bounds the ring at about
@@ -19,10 +20,10 @@ use std::time::Instant;
 
 use prost::Message;
 use proto::v1::LaneChunk;
-use tokio::net::TcpStream;
 use tokio_util::sync::CancellationToken;
 
 use super::CollectiveError;
+use super::carrier::Carrier;
 use super::core::{Place, check_place, left_of, right_of, take_in};
 use super::opening::framed;
 use super::schedule::{Delivery, Schedule};
@@ -34,8 +35,8 @@ const MAX_HEADER_BYTES: usize = 64;
 /// One lane of a ring: its connections to the right and from the left neighbour, on a
 /// single-threaded runtime of its own so that it can run on any thread.
 pub(super) struct Lane {
-    right: TcpStream,
-    left: TcpStream,
+    right: Carrier,
+    left: Carrier,
     /// Always present until dropped; taken then to shut it down without blocking, since a
     /// ring may be dropped on any runtime's thread.
     runtime: Option<tokio::runtime::Runtime>,
@@ -64,18 +65,14 @@ pub(super) struct LaneJob<'a> {
 }
 
 impl Lane {
-    /// A lane over the connections `right` (dialled) and `left` (accepted), moved onto a
+    /// A lane over the carriers `right` (dialled) and `left` (accepted), moved onto a
     /// runtime of the lane's own.
-    pub(super) fn new(right: TcpStream, left: TcpStream) -> std::io::Result<Self> {
-        let (right, left) = (right.into_std()?, left.into_std()?);
+    pub(super) fn new(right: Carrier, left: Carrier) -> std::io::Result<Self> {
         let runtime = tokio::runtime::Builder::new_current_thread()
             .enable_io()
             .enable_time()
             .build()?;
-        let (right, left) = {
-            let _entered = runtime.enter();
-            (TcpStream::from_std(right)?, TcpStream::from_std(left)?)
-        };
+        let (right, left) = (right.moved_onto(&runtime)?, left.moved_onto(&runtime)?);
         Ok(Self {
             right,
             left,
@@ -130,8 +127,8 @@ enum Incoming {
 /// the left one sent, and waits only when neither can move.
 struct Pump<'a, 'j> {
     job: &'a LaneJob<'j>,
-    right: &'a mut TcpStream,
-    left: &'a mut TcpStream,
+    right: &'a mut Carrier,
+    left: &'a mut Carrier,
     outgoing: std::collections::VecDeque<Outgoing>,
     deliveries: std::iter::Peekable<Box<dyn Iterator<Item = Delivery>>>,
     incoming: Incoming,
@@ -143,7 +140,7 @@ struct Pump<'a, 'j> {
 }
 
 impl<'a, 'j> Pump<'a, 'j> {
-    fn new(job: &'a LaneJob<'j>, right: &'a mut TcpStream, left: &'a mut TcpStream) -> Self {
+    fn new(job: &'a LaneJob<'j>, right: &'a mut Carrier, left: &'a mut Carrier) -> Self {
         let deliveries: Box<dyn Iterator<Item = Delivery>> = Box::new(job.schedule.deliveries());
         let mut pump = Self {
             job,
@@ -197,7 +194,8 @@ impl<'a, 'j> Pump<'a, 'j> {
         loop {
             let wrote = self.write_some(values)?;
             let read = self.read_some(values)?;
-            if self.outgoing.is_empty() && self.deliveries.peek().is_none() {
+            if self.outgoing.is_empty() && self.deliveries.peek().is_none() && self.right.flushed()
+            {
                 return Ok(self.bytes_sent);
             }
             if wrote || read {
@@ -212,7 +210,7 @@ impl<'a, 'j> Pump<'a, 'j> {
     /// been silent for the whole timeout.
     async fn wait(&mut self) -> Result<(), CollectiveError> {
         let deadline = tokio::time::Instant::from_std(self.last_progress + self.job.timeout);
-        let writing = !self.outgoing.is_empty();
+        let writing = !self.outgoing.is_empty() || !self.right.flushed();
         let reading = self.deliveries.peek().is_some();
         let (left_rank, right_rank) = (self.left_rank(), self.right_rank());
         let cancel = self.job.cancel;
@@ -235,7 +233,11 @@ impl<'a, 'j> Pump<'a, 'j> {
         let right_rank = self.right_rank();
         let encoding = self.job.encoding;
         let Some(out) = self.outgoing.front_mut() else {
-            return Ok(false);
+            // What a TLS session still holds back goes out after the last chunk.
+            return self
+                .right
+                .flush_some()
+                .map_err(|_| CollectiveError::PeerGone { rank: right_rank });
         };
         let header_len = out.header.len();
         let result = if out.written < header_len {

@@ -2,17 +2,18 @@
 
 use std::time::Instant;
 
-use tokio::net::TcpStream;
 use tokio::sync::mpsc;
 
+use super::carrier::Carrier;
 use super::core::with_retries;
 use super::lane::{Lane, LaneJob};
-use super::opening::{answer, dial};
+use super::opening::{LaneTlsClient, answer, dial};
 use super::{AdmittedLane, CollectiveError, Encoding, ReduceStats, Ring, Schedule};
 
 impl Ring {
     /// Dials `hello.lanes` lanes to the right neighbour at `address` (proving `secret`, this
-    /// rank's ring secret) while taking as many from the left one, within the link's timeout.
+    /// rank's ring secret; over TLS with `tls`) while taking as many from the left one, within
+    /// the link's timeout.
     /// Both at once: a dialled lane is answered only once its ring has taken it, so a rank
     /// that dialled before taking would wait on its right neighbour doing the same, around the
     /// ring.
@@ -21,6 +22,7 @@ impl Ring {
         address: &str,
         hello: proto::v1::LaneHello,
         secret: &str,
+        tls: Option<&LaneTlsClient>,
         admitted: mpsc::Receiver<AdmittedLane>,
     ) -> Result<Vec<Lane>, CollectiveError> {
         let deadline = tokio::time::Instant::now() + self.timeout;
@@ -32,7 +34,10 @@ impl Ring {
                     lane,
                     ..hello.clone()
                 };
-                right.push(self.dial_lane(address, &hello, secret, deadline).await?);
+                right.push(
+                    self.dial_lane(address, &hello, secret, tls, deadline)
+                        .await?,
+                );
             }
             Ok(right)
         };
@@ -54,9 +59,9 @@ impl Ring {
         count: usize,
         mut admitted: mpsc::Receiver<AdmittedLane>,
         deadline: tokio::time::Instant,
-    ) -> Result<Vec<TcpStream>, CollectiveError> {
+    ) -> Result<Vec<Carrier>, CollectiveError> {
         let left_rank = self.left_rank();
-        let mut left: Vec<Option<TcpStream>> = (0..count).map(|_| None).collect();
+        let mut left: Vec<Option<Carrier>> = (0..count).map(|_| None).collect();
         while left.iter().any(Option::is_none) {
             let mut arrived = tokio::select! {
                 arrived = admitted.recv() => arrived.ok_or(CollectiveError::Cancelled)?,
@@ -88,7 +93,7 @@ impl Ring {
                 continue;
             }
             if answer(&mut arrived.stream, "").await.is_ok() {
-                *slot = Some(arrived.stream);
+                *slot = Some(arrived.stream.into_carrier());
             }
         }
         Ok(left.into_iter().flatten().collect())
@@ -102,9 +107,10 @@ impl Ring {
         address: &str,
         hello: &proto::v1::LaneHello,
         secret: &str,
+        tls: Option<&LaneTlsClient>,
         deadline: tokio::time::Instant,
-    ) -> Result<TcpStream, CollectiveError> {
-        with_retries(deadline, &self.cancel, || dial(address, hello, secret))
+    ) -> Result<Carrier, CollectiveError> {
+        with_retries(deadline, &self.cancel, || dial(address, hello, secret, tls))
             .await
             .map_err(|gave_up| self.connect_failed(address, gave_up))
     }

@@ -17,6 +17,7 @@ use tokio::sync::mpsc;
 use tokio_stream::wrappers::UnboundedReceiverStream;
 use tokio_util::sync::CancellationToken;
 
+mod carrier;
 mod core;
 mod desk;
 mod handshake;
@@ -110,35 +111,78 @@ pub struct Link {
     pub timeout: Duration,
     /// TLS for the Collective service and for dialling peers; `None`: plain HTTP/2.
     pub tls: Option<PeerTls>,
-    /// TCP lanes the ring runs on without TLS (`lane`), each on a thread of its own; 0, or a
-    /// job with TLS: the chunks travel as messages of one gRPC stream. Every rank of a ring
-    /// must use the same number.
+    /// TCP lanes the ring runs on (`lane`; TLS sessions of their own when the job runs TLS),
+    /// each on a thread of its own; 0: the chunks travel as messages of one gRPC stream. Every
+    /// rank of a ring must use the same number.
     pub lanes: usize,
 }
 
-/// A rank's TLS: its own server identity and the trust it puts in its peers'.
+/// A rank's TLS: its own server identity and the trust it puts in its peers', for the gRPC
+/// stream (through tonic) and for the lanes (rustls driven by the lane).
 #[derive(Clone)]
 pub struct PeerTls {
     /// This rank's certificate and key, for its Collective service.
-    pub server: tonic::transport::ServerTlsConfig,
+    server: tonic::transport::ServerTlsConfig,
+    /// The same identity for the lanes this rank accepts.
+    lane_server: std::sync::Arc<rustls::ServerConfig>,
+    /// Trust in the CA that signed the peers' certificates, for the lanes this rank dials.
+    lane_client: std::sync::Arc<rustls::ClientConfig>,
     /// The CA that signed the peers' certificates.
-    pub ca: std::path::PathBuf,
+    ca: std::path::PathBuf,
     /// The name every peer's certificate must carry; `None`: each peer's own host (name or
     /// IP address), so one certificate per host works.
-    pub domain: Option<String>,
+    domain: Option<String>,
 }
 
 impl PeerTls {
-    fn client_for(
-        &self,
-        address: &str,
-    ) -> Result<tonic::transport::ClientTlsConfig, proto::tls::TlsError> {
+    /// A rank's TLS from its certificate `cert` and key `key` (PEM), trusting peers whose
+    /// certificates `ca` signed and carry `domain` (`None`: each peer's own host); a file
+    /// that cannot be used is named.
+    pub fn from_files(
+        cert: &std::path::Path,
+        key: &std::path::Path,
+        ca: &std::path::Path,
+        domain: Option<String>,
+    ) -> Result<Self, proto::tls::TlsError> {
+        let server = proto::tls::server_config(cert, key)?;
+        proto::tls::client_config(ca, domain.as_deref().unwrap_or("localhost"))?;
+        Ok(Self {
+            server,
+            lane_server: proto::tls::lane_server_config(cert, key)?,
+            lane_client: proto::tls::lane_client_config(ca)?,
+            ca: ca.to_path_buf(),
+            domain,
+        })
+    }
+
+    /// The name the peer at `address` must show.
+    fn name_for<'a>(&'a self, address: &'a str) -> &'a str {
         let host = address
             .rsplit_once(':')
             .map_or(address, |(host, _)| host)
             .trim_start_matches('[')
             .trim_end_matches(']');
-        proto::tls::client_config(&self.ca, self.domain.as_deref().unwrap_or(host))
+        self.domain.as_deref().unwrap_or(host)
+    }
+
+    fn client_for(
+        &self,
+        address: &str,
+    ) -> Result<tonic::transport::ClientTlsConfig, proto::tls::TlsError> {
+        proto::tls::client_config(&self.ca, self.name_for(address))
+    }
+
+    /// How lanes dial the peer at `address`; refused when its name is not a DNS name or an
+    /// IP address.
+    fn lane_client_for(
+        &self,
+        address: &str,
+    ) -> Result<opening::LaneTlsClient, rustls::pki_types::InvalidDnsNameError> {
+        let name = rustls::pki_types::ServerName::try_from(self.name_for(address).to_string())?;
+        Ok(opening::LaneTlsClient {
+            config: self.lane_client.clone(),
+            name,
+        })
     }
 }
 
@@ -200,15 +244,26 @@ impl Ring {
         // Joined first, so the left neighbour's stream is admitted while this rank dials.
         let inboxes = mailbox.join(generation, &keys.left);
         let address = &peers[ring.right_rank()];
-        if link.tls.is_none() && link.lanes > 0 {
+        if link.lanes > 0 {
             let hello = proto::v1::LaneHello {
                 generation,
                 lane: 0,
                 lanes: link.lanes as u32,
                 nonce: Vec::new(),
             };
+            let tls =
+                match &link.tls {
+                    Some(tls) => Some(tls.lane_client_for(address).map_err(|e| {
+                        CollectiveError::Connect {
+                            rank: ring.right_rank(),
+                            address: address.clone(),
+                            reason: format!("its name cannot be a certificate's: {e}"),
+                        }
+                    })?),
+                    None => None,
+                };
             ring.lanes = ring
-                .open_lanes(address, hello, &keys.own, inboxes.lanes)
+                .open_lanes(address, hello, &keys.own, tls.as_ref(), inboxes.lanes)
                 .await?;
         } else {
             ring.inbox = Some(inboxes.chunks);

@@ -1,18 +1,32 @@
-//! A lane connection's opening: the magic, the hello, the mutual proof of the ring's secret
-//! (`handshake.rs`) and the listener's answer, each message framed by its length. The dialler
-//! and the listener sides of it, so that `lane.rs` starts from a connection ready for chunks.
+//! A lane connection's opening: the magic, TLS when the ring runs it, the hello, the mutual
+//! proof of the ring's secret (`handshake.rs`) and the listener's answer, each message framed
+//! by its length. The dialler and the listener sides of it, so that `lane.rs` starts from a
+//! carrier ready for chunks.
+//!
+//! The magic is the only thing sent in the clear on a TLS lane: the hello, the proofs and the
+//! answer travel inside the session, so a proof is bound to the session whose listener showed
+//! a certificate the ring's CA signed, and nobody in between can relay it into a session of
+//! their own.
+
+use std::pin::Pin;
+use std::sync::Arc;
+use std::task::{Context, Poll};
 
 use prost::Message;
 use proto::v1::{LaneAnswer, LaneChallenge, LaneHello, LaneProof};
-use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use tokio::io::{AsyncRead, AsyncReadExt, AsyncWrite, AsyncWriteExt, ReadBuf};
 use tokio::net::TcpStream;
 
+use super::carrier::Carrier;
 use super::core::Attempt;
 use super::handshake::{self, Role};
 
-/// The first bytes of a lane connection (a gRPC connection opens with HTTP/2's preface or a
-/// TLS hello, never with these).
+/// The first bytes of a plain lane connection (a gRPC connection opens with HTTP/2's preface
+/// or a TLS hello, never with these).
 pub const LANE_MAGIC: &[u8; 8] = b"XFLANE01";
+
+/// The first bytes of a TLS lane connection, followed by the TLS handshake.
+pub const TLS_LANE_MAGIC: &[u8; 8] = b"XFLANE1S";
 
 /// Longest handshake message either side reads: a hello, a challenge or a proof is a few dozen
 /// bytes, so a stranger cannot make a rank hold more than this for a connection.
@@ -25,6 +39,92 @@ pub(super) fn framed(message: &impl Message) -> Vec<u8> {
     framed.extend_from_slice(&(body.len() as u32).to_le_bytes());
     framed.extend_from_slice(&body);
     framed
+}
+
+/// Writes `message` framed and pushes it out (through the TLS session too, when there is one).
+async fn send<S: AsyncWrite + Unpin>(
+    stream: &mut S,
+    message: &impl Message,
+) -> std::io::Result<()> {
+    stream.write_all(&framed(message)).await?;
+    stream.flush().await
+}
+
+/// How a ring's lanes dial their right neighbour over TLS: whom they trust, and the name
+/// the neighbour's certificate must carry.
+#[derive(Clone)]
+pub(super) struct LaneTlsClient {
+    /// Trust in the ring's CA.
+    pub(super) config: Arc<rustls::ClientConfig>,
+    /// The neighbour's name.
+    pub(super) name: rustls::pki_types::ServerName<'static>,
+}
+
+/// A lane connection during its opening: the TCP connection, or the TLS stream over it.
+pub(super) enum LaneStream {
+    /// A plain lane.
+    Plain(TcpStream),
+    /// A TLS lane, as the dialler (client) or the listener (server).
+    Tls(Box<tokio_rustls::TlsStream<TcpStream>>),
+}
+
+impl LaneStream {
+    /// The carrier the lane's chunks travel on once the opening is done.
+    pub(super) fn into_carrier(self) -> Carrier {
+        match self {
+            Self::Plain(tcp) => Carrier::Plain(tcp),
+            Self::Tls(stream) => match *stream {
+                tokio_rustls::TlsStream::Client(client) => {
+                    let (tcp, session) = client.into_inner();
+                    Carrier::tls(tcp, session)
+                }
+                tokio_rustls::TlsStream::Server(server) => {
+                    let (tcp, session) = server.into_inner();
+                    Carrier::tls(tcp, session)
+                }
+            },
+        }
+    }
+}
+
+impl AsyncRead for LaneStream {
+    fn poll_read(
+        self: Pin<&mut Self>,
+        cx: &mut Context<'_>,
+        buf: &mut ReadBuf<'_>,
+    ) -> Poll<std::io::Result<()>> {
+        match self.get_mut() {
+            Self::Plain(tcp) => Pin::new(tcp).poll_read(cx, buf),
+            Self::Tls(stream) => Pin::new(stream.as_mut()).poll_read(cx, buf),
+        }
+    }
+}
+
+impl AsyncWrite for LaneStream {
+    fn poll_write(
+        self: Pin<&mut Self>,
+        cx: &mut Context<'_>,
+        buf: &[u8],
+    ) -> Poll<std::io::Result<usize>> {
+        match self.get_mut() {
+            Self::Plain(tcp) => Pin::new(tcp).poll_write(cx, buf),
+            Self::Tls(stream) => Pin::new(stream.as_mut()).poll_write(cx, buf),
+        }
+    }
+
+    fn poll_flush(self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<std::io::Result<()>> {
+        match self.get_mut() {
+            Self::Plain(tcp) => Pin::new(tcp).poll_flush(cx),
+            Self::Tls(stream) => Pin::new(stream.as_mut()).poll_flush(cx),
+        }
+    }
+
+    fn poll_shutdown(self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<std::io::Result<()>> {
+        match self.get_mut() {
+            Self::Plain(tcp) => Pin::new(tcp).poll_shutdown(cx),
+            Self::Tls(stream) => Pin::new(stream.as_mut()).poll_shutdown(cx),
+        }
+    }
 }
 
 /// Why a lane's handshake message could not be read.
@@ -47,8 +147,8 @@ pub(super) enum HandshakeError {
 }
 
 /// Reads one length-prefixed message of at most `limit` bytes.
-pub(super) async fn read_framed<M: Message + Default>(
-    stream: &mut TcpStream,
+pub(super) async fn read_framed<M: Message + Default, S: AsyncRead + Unpin>(
+    stream: &mut S,
     limit: usize,
 ) -> Result<M, HandshakeError> {
     let mut length = [0u8; 4];
@@ -62,32 +162,63 @@ pub(super) async fn read_framed<M: Message + Default>(
     Ok(M::decode(body.as_slice())?)
 }
 
-/// Opens lane `hello.lane` to `address` as the holder of the ring secret `secret`: the magic
-/// and the hello (with a fresh nonce), the listener's proof checked before anything of the
-/// dialler's own is sent, the dialler's proof, and the listener's answer. Returns the
-/// connection ready for chunks, or why it was refused.
+/// Opens lane `hello.lane` to `address` as the holder of the ring secret `secret`: the magic,
+/// the TLS handshake with `tls`, and the hello (with a fresh nonce), the listener's proof
+/// checked before anything of the dialler's own is sent, the dialler's proof, and the
+/// listener's answer. Returns the carrier ready for chunks, or why it was refused.
 pub(super) async fn dial(
     address: &str,
     hello: &LaneHello,
     secret: &str,
-) -> Result<TcpStream, Attempt> {
+    tls: Option<&LaneTlsClient>,
+) -> Result<Carrier, Attempt> {
+    let unreachable = |e: &dyn std::fmt::Display| Attempt::Again(e.to_string());
+    let mut tcp = TcpStream::connect(address)
+        .await
+        .map_err(|e| unreachable(&e))?;
+    tcp.set_nodelay(true).map_err(|e| unreachable(&e))?;
+    let magic = if tls.is_some() {
+        TLS_LANE_MAGIC
+    } else {
+        LANE_MAGIC
+    };
+    tcp.write_all(magic).await.map_err(|e| unreachable(&e))?;
+    let mut stream = match tls {
+        None => LaneStream::Plain(tcp),
+        Some(tls) => {
+            let connector = tokio_rustls::TlsConnector::from(tls.config.clone());
+            // A certificate refused is final; a connection lost mid-handshake is not.
+            let session = connector
+                .connect(tls.name.clone(), tcp)
+                .await
+                .map_err(|e| match e.kind() {
+                    std::io::ErrorKind::InvalidData => {
+                        Attempt::Refused(format!("the lane's TLS handshake failed: {e}"))
+                    }
+                    _ => unreachable(&e),
+                })?;
+            LaneStream::Tls(Box::new(tokio_rustls::TlsStream::Client(session)))
+        }
+    };
+    prove_to_listener(&mut stream, hello, secret).await?;
+    Ok(stream.into_carrier())
+}
+
+/// The dialler's side of the mutual proof on an opened connection: the hello, the listener's
+/// proof checked first, then the dialler's own, and the answer.
+async fn prove_to_listener(
+    stream: &mut LaneStream,
+    hello: &LaneHello,
+    secret: &str,
+) -> Result<(), Attempt> {
     let unreachable = |e: &dyn std::fmt::Display| Attempt::Again(e.to_string());
     let nonce = handshake::fresh_nonce().map_err(|e| Attempt::Refused(e.to_string()))?;
     let hello = LaneHello {
         nonce,
         ..hello.clone()
     };
-    let mut stream = TcpStream::connect(address)
-        .await
-        .map_err(|e| unreachable(&e))?;
-    stream.set_nodelay(true).map_err(|e| unreachable(&e))?;
-    let mut opening = LANE_MAGIC.to_vec();
-    opening.extend_from_slice(&framed(&hello));
-    stream
-        .write_all(&opening)
-        .await
-        .map_err(|e| unreachable(&e))?;
-    let challenge: LaneChallenge = read_framed(&mut stream, MAX_HANDSHAKE_BYTES)
+    send(stream, &hello).await.map_err(|e| unreachable(&e))?;
+    let challenge: LaneChallenge = read_framed(stream, MAX_HANDSHAKE_BYTES)
         .await
         .map_err(|e| unreachable(&e))?;
     if !challenge.refusal.is_empty() {
@@ -107,41 +238,46 @@ pub(super) async fn dial(
     let proof = LaneProof {
         proof: handshake::prove(Role::Dialler, secret, &challenge.nonce, &hello),
     };
-    stream
-        .write_all(&framed(&proof))
-        .await
-        .map_err(|e| unreachable(&e))?;
-    let answer: LaneAnswer = read_framed(&mut stream, MAX_HANDSHAKE_BYTES)
+    send(stream, &proof).await.map_err(|e| unreachable(&e))?;
+    let answer: LaneAnswer = read_framed(stream, MAX_HANDSHAKE_BYTES)
         .await
         .map_err(|e| unreachable(&e))?;
     if answer.refusal.is_empty() {
-        Ok(stream)
+        Ok(())
     } else {
         Err(Attempt::Refused(answer.refusal))
     }
 }
 
-/// Reads a lane's hello, after its magic, from a connection the listener accepted.
-pub(super) async fn read_hello(stream: &mut TcpStream) -> Result<LaneHello, HandshakeError> {
+/// Reads a lane's magic from a connection the listener accepted: whether it asks for TLS.
+pub(super) async fn read_magic(tcp: &mut TcpStream) -> Result<bool, HandshakeError> {
     let mut magic = [0u8; LANE_MAGIC.len()];
-    stream.read_exact(&mut magic).await?;
+    tcp.read_exact(&mut magic).await?;
+    Ok(&magic == TLS_LANE_MAGIC)
+}
+
+/// Reads a lane's hello, after its magic (and TLS, when the lane runs it).
+pub(super) async fn read_hello(stream: &mut LaneStream) -> Result<LaneHello, HandshakeError> {
     read_framed(stream, MAX_HANDSHAKE_BYTES).await
 }
 
 /// Refuses a lane at its challenge, saying why.
-pub(super) async fn refuse(stream: &mut TcpStream, refusal: &str) -> std::io::Result<()> {
+pub(super) async fn refuse<S: AsyncWrite + Unpin>(
+    stream: &mut S,
+    refusal: &str,
+) -> std::io::Result<()> {
     let challenge = LaneChallenge {
         refusal: refusal.to_string(),
         ..LaneChallenge::default()
     };
-    stream.write_all(&framed(&challenge)).await
+    send(stream, &challenge).await
 }
 
 /// The listener's side of the mutual proof for `hello` under the ring secret `secret`: sends
 /// its proof and a fresh nonce, reads the dialler's proof. Returns whether the dialler proved
 /// that it holds the secret (refusing it on the connection when it did not).
 pub(super) async fn challenge(
-    stream: &mut TcpStream,
+    stream: &mut LaneStream,
     hello: &LaneHello,
     secret: &str,
 ) -> Result<bool, HandshakeError> {
@@ -151,7 +287,7 @@ pub(super) async fn challenge(
         proof: handshake::prove(Role::Listener, secret, &hello.nonce, hello),
         nonce: nonce.clone(),
     };
-    stream.write_all(&framed(&challenge)).await?;
+    send(stream, &challenge).await?;
     let proof: LaneProof = read_framed(stream, MAX_HANDSHAKE_BYTES).await?;
     let proven = handshake::verify(Role::Dialler, secret, &nonce, hello, &proof.proof);
     if !proven {
@@ -161,9 +297,9 @@ pub(super) async fn challenge(
 }
 
 /// Answers a proven lane: an empty refusal admits it (sent once its ring has taken it).
-pub(super) async fn answer(stream: &mut TcpStream, refusal: &str) -> std::io::Result<()> {
+pub(super) async fn answer(stream: &mut LaneStream, refusal: &str) -> std::io::Result<()> {
     let answer = LaneAnswer {
         refusal: refusal.to_string(),
     };
-    stream.write_all(&framed(&answer)).await
+    send(stream, &answer).await
 }

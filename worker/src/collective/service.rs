@@ -78,7 +78,7 @@ pub(super) struct Doors {
 pub(super) struct AdmittedLane {
     pub(super) lane: u32,
     pub(super) lanes: u32,
-    pub(super) stream: tokio::net::TcpStream,
+    pub(super) stream: super::opening::LaneStream,
 }
 
 /// What a ring reads from after joining a generation.
@@ -282,7 +282,10 @@ pub fn server(
     let (reporter, health) = tonic_health::server::health_reporter();
     let serving = reporter.clone();
     let (grpc, incoming) = mpsc::channel(MAX_LANES);
-    let lanes = super::desk::LaneDesk::new(mailbox.clone(), link.tls.is_some());
+    let lanes = super::desk::LaneDesk::new(
+        mailbox.clone(),
+        link.tls.as_ref().map(|tls| tls.lane_server.clone()),
+    );
     let run = async move {
         serving
             .set_serving::<proto::v1::collective_server::CollectiveServer<CollectiveService>>()
