@@ -4,6 +4,7 @@
 //! pose probe, and the comparison of several runs' reports.
 
 pub mod compare;
+pub mod curve;
 mod error;
 mod figures;
 mod frames;

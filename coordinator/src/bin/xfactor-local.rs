@@ -29,12 +29,20 @@ fn defaults() -> LocalJob {
     LocalJob::demo(Path::new(DEFAULT_DIR), 0)
 }
 
-/// Checks a `--preset` against the cluster YAML's `model.preset` names.
 /// `f32` or `bf16`, as the YAML's `workers.allreduce_wire` reads it.
 fn wire_format(name: &str) -> Result<WireFormat, serde_norway::Error> {
     serde_norway::from_str(name)
 }
 
+/// A learning rate: a finite number above 0.
+fn positive_rate(text: &str) -> Result<f64, String> {
+    match text.parse::<f64>() {
+        Ok(rate) if rate.is_finite() && rate > 0.0 => Ok(rate),
+        _ => Err(format!("`{text}` is not a learning rate above 0")),
+    }
+}
+
+/// Checks a `--preset` against the cluster YAML's `model.preset` names.
 fn preset_name(name: &str) -> Result<String, serde_norway::Error> {
     serde_norway::from_str::<ModelPreset>(name).map(|_| name.to_string())
 }
@@ -64,9 +72,21 @@ struct Cli {
     /// Steps of stage 2
     #[arg(long, value_name = "N", default_value_t = defaults().stage2_steps)]
     stage2_steps: u64,
-    /// Model preset: tiny, benchmark or paper
+    /// Model preset: tiny, small (the transfer recipe's), benchmark or paper
     #[arg(long, value_name = "PRESET", default_value_t = defaults().preset, value_parser = preset_name)]
     preset: String,
+    /// Generated training scenes (each rendered along every camera path)
+    #[arg(long, value_name = "N", default_value_t = defaults().scenes, value_parser = clap::value_parser!(u64).range(1..))]
+    scenes: u64,
+    /// Generated camera paths per scene
+    #[arg(long, value_name = "N", default_value_t = defaults().trajectories, value_parser = clap::value_parser!(u64).range(1..))]
+    paths: u64,
+    /// Seed of the data, the training and the evaluation's scenes
+    #[arg(long, value_name = "N", default_value_t = defaults().seed)]
+    seed: u64,
+    /// Peak learning rate of stage 1's warm-up and cosine schedule
+    #[arg(long, value_name = "LR", default_value_t = defaults().stage1_peak_lr, value_parser = positive_rate)]
+    stage1_peak_lr: f64,
     /// Training resolution in pixels
     #[arg(long, value_name = "PX", default_value_t = defaults().image_size)]
     image_size: usize,
@@ -121,6 +141,10 @@ fn main() -> anyhow::Result<()> {
     job.image_size = cli.image_size;
     job.evaluate = !cli.no_evaluate;
     job.preset = cli.preset;
+    job.scenes = cli.scenes;
+    job.trajectories = cli.paths;
+    job.seed = cli.seed;
+    job.stage1_peak_lr = cli.stage1_peak_lr;
     job.device = cli.device;
     job.allreduce_wire = cli.allreduce_wire;
     if job.checkpoint_dir().exists() {

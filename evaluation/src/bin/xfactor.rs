@@ -3,7 +3,8 @@
 //! `xfactor transfer` renders a scene along the camera motion of another video;
 //! `xfactor evaluate` runs the paper's evaluation of a checkpoint on generated scenes;
 //! `xfactor import-checkpoint` turns the authors' released clu checkpoint into ours;
-//! `xfactor compare` lays several runs' evaluation reports side by side.
+//! `xfactor compare` lays several runs' evaluation reports side by side;
+//! `xfactor curve` evaluates every checkpoint a run committed: transferability against steps.
 
 use std::path::PathBuf;
 
@@ -42,6 +43,34 @@ enum Command {
     /// Lays the evaluation reports of several runs side by side (the paper's Table 3 layout):
     /// compare.md and compare.png
     Compare(CompareArgs),
+    /// Evaluates every checkpoint a run committed in one stage with the run's own evaluation
+    /// settings: TPS AUC@30 against steps beside the unrelated-path calibration, as CSV, PNG
+    /// and SVG
+    Curve(CurveArgs),
+}
+
+#[derive(Debug, clap::Args)]
+struct CurveArgs {
+    /// The run's folder (`xfactor-local --dir`): its report.json lists the commits
+    #[arg(long, value_name = "DIR")]
+    run: PathBuf,
+    /// The stage whose commits are evaluated
+    #[arg(long, value_name = "N", default_value_t = 1, value_parser = clap::value_parser!(u64).range(1..=2))]
+    stage: u64,
+    /// Evaluation settings (JSON) instead of those of the run's own evaluation
+    #[arg(long, value_name = "SPEC.json")]
+    spec: Option<PathBuf>,
+    /// Context views each checkpoint renders from (default: as the run's own evaluation
+    /// gave the stage)
+    #[arg(long, value_name = "N", value_parser = clap::value_parser!(u64).range(1..))]
+    context_views: Option<u64>,
+    /// Folder of the curve and its evaluation (default: DIR/checkpoints/curves)
+    #[arg(long, value_name = "DIR")]
+    out: Option<PathBuf>,
+    #[command(flatten)]
+    backend: BackendArgs,
+    #[command(flatten)]
+    log: LogArgs,
 }
 
 #[derive(Debug, clap::Args)]
@@ -156,7 +185,57 @@ fn main() -> anyhow::Result<()> {
         Command::Evaluate(args) => evaluate(args),
         Command::ImportCheckpoint(args) => import_checkpoint(args),
         Command::Compare(args) => compare(args),
+        Command::Curve(args) => curve(args),
     }
+}
+
+fn curve(args: CurveArgs) -> anyhow::Result<()> {
+    use evaluation::curve;
+    args.log.init()?;
+    let (mut spec, context_views) = match (&args.spec, args.context_views) {
+        (Some(path), Some(views)) => (read_spec(Some(path))?, usize::try_from(views)?),
+        (given, views) => {
+            let (own, own_views) = curve::run_evaluation_settings(&args.run, args.stage)?;
+            let spec = match given {
+                Some(path) => read_spec(Some(path))?,
+                None => own,
+            };
+            let views = views.map_or(Ok(own_views), usize::try_from)?;
+            (spec, views)
+        }
+    };
+    // The untrained model is the same at every point: measured once, by the run itself.
+    spec.compare_untrained = false;
+    let checkpoints = curve::committed_checkpoints(&args.run, args.stage, context_views)?;
+    let out = args
+        .out
+        .unwrap_or_else(|| args.run.join("checkpoints").join("curves"));
+    let name = format!("transfer-stage{}", args.stage);
+    let device = args.backend.backend.device()?;
+    let report = run_evaluation(&spec, &checkpoints, &out.join(&name), &device)
+        .context("evaluating the run's checkpoints")?;
+    let points = curve::points(&report);
+    let title = format!(
+        "{}: stage {} transfer against steps",
+        args.run.display(),
+        args.stage
+    );
+    curve::write_curve(&points, &title, &out, &name)?;
+    for point in &points {
+        println!(
+            "step={} tps_auc30={:.4} tps_auc30_spread={:.4} unrelated_auc30={:.4} unrelated_auc30_spread={:.4} lead_in_spreads={:.2} probe_auc30={:.4} psnr={:.2}",
+            point.step,
+            point.tps_auc30.0,
+            point.tps_auc30.1,
+            point.unrelated_auc30.0,
+            point.unrelated_auc30.1,
+            point.lead_in_spreads(),
+            point.probe_auc30.0,
+            point.psnr.0
+        );
+    }
+    println!("curve: {}", out.join(format!("{name}.png")).display());
+    Ok(())
 }
 
 fn compare(args: CompareArgs) -> anyhow::Result<()> {
