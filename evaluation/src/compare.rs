@@ -148,7 +148,7 @@ pub fn markdown(runs: &[ComparedRun], threshold: u32) -> String {
         let spec = &first.report.spec;
         let _ = writeln!(
             text,
-            "Evaluation: generated scenes (seed {}, {} scenes x {} trajectories), {} TPS pairs ({} oracle), probe on {} held-out scenes; values in %, at {threshold} degrees.\n",
+            "Evaluation: generated scenes (seed {}, {} scenes x {} trajectories), {} TPS pairs ({} oracle), probe on {} held-out scenes ({}); values in %, at {threshold} degrees.\n",
             spec.seed,
             spec.scenes,
             spec.trajectories,
@@ -157,7 +157,8 @@ pub fn markdown(runs: &[ComparedRun], threshold: u32) -> String {
                 .report
                 .last()
                 .map_or("?", |stage| stage.trained.tps.oracle.as_str()),
-            spec.probe.test_scenes
+            spec.probe.test_scenes,
+            spec.probe.budget()
         );
     }
     let _ = writeln!(

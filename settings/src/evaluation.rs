@@ -187,6 +187,26 @@ pub enum ProbeLoss {
     Trajectories,
 }
 
+impl ProbeSpec {
+    /// The probe's budget and protocol in words, printed beside its figures: `MLP3 of width
+    /// 64, 1000 steps of 64, loss pairs`, and `rotation from identity` when set.
+    pub fn budget(&self) -> String {
+        let loss = match self.loss {
+            ProbeLoss::Pairs => "pairs (frame pairs, translations as they are)",
+            ProbeLoss::Trajectories => "trajectories (whole sequences, translation scale-free)",
+        };
+        let start = if self.rotation_from_identity {
+            ", rotation from identity"
+        } else {
+            ""
+        };
+        format!(
+            "MLP3 of width {}, {} steps of {}, loss {loss}{start}",
+            self.width, self.steps, self.batch
+        )
+    }
+}
+
 impl Default for ProbeSpec {
     /// The paper's 10k steps of batch 64, the release's width 64, learning rate `1e-3`, two
     /// held-out scenes.
@@ -220,4 +240,31 @@ pub enum OracleSpec {
         #[serde(default)]
         args: Vec<String>,
     },
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn the_probe_budget_names_width_steps_batch_and_protocol() {
+        let paper = ProbeSpec {
+            width: 256,
+            ..ProbeSpec::default()
+        };
+        assert_eq!(
+            paper.budget(),
+            "MLP3 of width 256, 10000 steps of 64, loss pairs (frame pairs, translations as they are)"
+        );
+        let demo = ProbeSpec {
+            steps: 1000,
+            loss: ProbeLoss::Trajectories,
+            rotation_from_identity: true,
+            ..ProbeSpec::default()
+        };
+        assert_eq!(
+            demo.budget(),
+            "MLP3 of width 64, 1000 steps of 64, loss trajectories (whole sequences, translation scale-free), rotation from identity"
+        );
+    }
 }

@@ -381,11 +381,16 @@ fn evaluation_figures(location: &Path) -> anyhow::Result<String> {
     )
     .with_context(|| format!("{} is not JSON", path.display()))?;
     let scenes = &report["scenes"];
+    let probe = &report["spec"]["probe"];
     let mut figures = vec![format!(
-        "eval_split={} eval_scenes={} eval_paths={}",
+        "eval_split={} eval_scenes={} eval_paths={} probe_width={} probe_steps={} probe_batch={} probe_loss={}",
         scenes["split"].as_str().unwrap_or("?"),
         scenes["scenes"],
-        scenes["trajectories"]
+        scenes["trajectories"],
+        probe["width"],
+        probe["steps"],
+        probe["batch"],
+        probe["loss"].as_str().unwrap_or("?")
     )];
     for stage in report["stages"].as_array().into_iter().flatten() {
         figures.push(stage_figures(stage));

@@ -81,7 +81,12 @@ fn reconstruction_table(report: &EvaluationReport, text: &mut String) {
 }
 
 fn camera_table(report: &EvaluationReport, text: &mut String) {
-    text.push_str("\n## Transferability (TPS) and pose probe\n\n`±` is the bootstrap spread of SE3_Auc@30 over transfers (TPS) or held-out sequences (probe).\n\n| checkpoint | model | measure | Rac@5 | Tac@5 | Rot_Auc@20 | Trans_Auc@20 | SE3_Auc@20 | SE3_Auc@30 | ± | traj err (scale-inv.) | traj err (unscaled) |\n| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |\n");
+    let _ = write!(
+        text,
+        "\n## Transferability (TPS) and pose probe\n\n`±` is the bootstrap spread of SE3_Auc@30 over transfers (TPS) or held-out sequences (probe). The probe: {}.\n\n",
+        report.spec.probe.budget()
+    );
+    text.push_str("| checkpoint | model | measure | Rac@5 | Tac@5 | Rot_Auc@20 | Trans_Auc@20 | SE3_Auc@20 | SE3_Auc@30 | ± | traj err (scale-inv.) | traj err (unscaled) |\n| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |\n");
     for stage in &report.stages {
         let name = stage_name(stage);
         for (model, r) in models(stage) {

@@ -1,0 +1,78 @@
+#!/usr/bin/env bash
+# The transfer recipe (issue 52), one run per seed: xfactor-local trains the `small` model on
+# generated scenes through both stages and evaluates both on held-out scenes, then
+# `xfactor curve` evaluates every stage-1 commit the same way (TPS AUC@30 against steps). One
+# key=value line per seed, then the spread over the seeds and whether every seed's stage-1
+# transfers lead the oracle's unrelated-path calibration by --spreads of their combined
+# spreads (exit 1 when one does not). Extra arguments go to xfactor-local (they override the
+# recipe's flags).
+#
+#   scripts/transfer-recipe.sh [--seeds 7,8,9] [--out transfer-runs] [--spreads 3] [--no-build]
+#                              [--no-curve] [-- XFACTOR_LOCAL_FLAGS...]
+set -euo pipefail
+cd "$(dirname "$0")/.."
+source scripts/env.sh
+SEEDS=7,8,9 OUT=transfer-runs SPREADS=3 BUILD=1 CURVE=1
+while [ $# -gt 0 ]; do
+    case "$1" in
+        --seeds) SEEDS="$2"; shift ;;
+        --out) OUT="$2"; shift ;;
+        --spreads) SPREADS="$2"; shift ;;
+        --no-build) BUILD=0 ;;
+        --no-curve) CURVE=0 ;;
+        --) shift; break ;;
+        *) echo "transfer-recipe: unknown argument $1 (xfactor-local's flags go after --)" >&2; exit 2 ;;
+    esac
+    shift
+done
+# The recipe: the smallest preset whose latents carry a camera path, on 64 scenes x 16 paths.
+RECIPE=(--preset small --scenes 64 --paths 16 --stage1-peak-lr 1e-3)
+if [ "$BUILD" = 1 ]; then
+    cargo build --release -p coordinator -p worker -p evaluation --bins
+fi
+BIN="$CARGO_TARGET_DIR/release"
+mkdir -p "$OUT"
+field() { grep -o "$1=[^ ]*" <<<"$2" | head -1 | cut -d= -f2; }
+
+LINES=()
+for seed in ${SEEDS//,/ }; do
+    run="$OUT/seed-$seed"
+    "$BIN/xfactor-local" --dir "$run" --seed "$seed" "${RECIPE[@]}" "$@" >"$run.log" 2>&1 \
+        || { echo "transfer-recipe: seed $seed failed, see $run.log" >&2; exit 1; }
+    figures=$(grep '^outcome=' "$run.log")
+    unrelated=$(python3 - "$run" <<'PY'
+import glob, json, sys
+report = json.load(open(glob.glob(sys.argv[1] + "/checkpoints/evaluation/*/report.json")[0]))
+metrics = report["stages"][0]["trained"]["tps"]["unrelated_trajectory"]
+auc = next(t["auc"] for t in metrics["thresholds"] if t["threshold"] == 30)
+print(f"{auc:.4f} {metrics['spread']['auc30']:.4f}")
+PY
+)
+    read -r calibration calibration_spread <<<"$unrelated"
+    tps=$(field stage1_tps_auc30 "$figures") tps_spread=$(field stage1_tps_auc30_spread "$figures")
+    line=$(awk -v seed="$seed" -v tps="$tps" -v ts="$tps_spread" -v cal="$calibration" -v cs="$calibration_spread" \
+        -v s2="$(field stage2_tps_auc30 "$figures")" -v s2s="$(field stage2_tps_auc30_spread "$figures")" \
+        -v probe="$(field stage1_probe_auc30 "$figures")" -v untrained="$(field stage1_untrained_probe_auc30 "$figures")" \
+        -v psnr="$(field stage1_psnr "$figures")" -v seconds="$(field seconds "$figures")" 'BEGIN {
+        lead = (tps - cal) / sqrt(ts * ts + cs * cs)
+        printf "bench=transfer_recipe seed=%s stage1_tps_auc30=%.3f stage1_tps_auc30_spread=%.3f unrelated_auc30=%.3f unrelated_auc30_spread=%.3f lead_in_spreads=%.2f stage2_tps_auc30=%.3f stage2_tps_auc30_spread=%.3f stage1_probe_auc30=%.3f stage1_untrained_probe_auc30=%.3f stage1_psnr=%.2f seconds=%s\n", seed, tps, ts, cal, cs, lead, s2, s2s, probe, untrained, psnr, seconds
+    }')
+    echo "$line"
+    LINES+=("$line")
+    if [ "$CURVE" = 1 ]; then
+        "$BIN/xfactor" curve --run "$run" >"$run.curve" 2>"$run.curve.log" \
+            || { echo "transfer-recipe: the curve of seed $seed failed, see $run.curve.log" >&2; exit 1; }
+        sed "s/^/seed=$seed /" "$run.curve"
+    fi
+done
+printf '%s\n' "${LINES[@]}" | awk -v need="$SPREADS" -v flags="${RECIPE[*]} $*" '
+    function value(key,    i, kv) { for (i = 1; i <= NF; i++) { split($i, kv, "="); if (kv[1] == key) return kv[2] } }
+    { n++; tps[n] = value("stage1_tps_auc30"); lead = value("lead_in_spreads") + 0
+      worst = (n == 1 || lead < worst) ? lead : worst; sum += tps[n] }
+    END {
+        mean = sum / n
+        for (i = 1; i <= n; i++) var += (tps[i] - mean) ^ 2
+        sd = n > 1 ? sqrt(var / (n - 1)) : 0
+        printf "bench=transfer_recipe_summary seeds=%d flags=\"%s\" stage1_tps_auc30_mean=%.3f stage1_tps_auc30_sd_over_seeds=%.3f worst_lead_in_spreads=%.2f needed=%s met=%s\n", n, flags, mean, sd, worst, need, (worst >= need ? "yes" : "no")
+        exit !(worst >= need)
+    }'
