@@ -25,8 +25,8 @@ while [ $# -gt 0 ]; do
     esac
     shift
 done
-# The recipe: the smallest preset whose latents carry a camera path, on 64 scenes x 16 paths.
-RECIPE=(--preset small --scenes 64 --paths 16 --stage1-peak-lr 1e-3)
+# The recipe: the small preset on 64 scenes x 16 paths, evaluated with the paper's probe.
+RECIPE=(--preset small --scenes 64 --paths 16 --probe-steps 10000 --probe-width 256)
 if [ "$BUILD" = 1 ]; then
     cargo build --release -p coordinator -p worker -p evaluation --bins
 fi

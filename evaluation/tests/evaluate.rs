@@ -116,6 +116,7 @@ fn evaluation_spec() -> EvaluationSpec {
         probe: ProbeSpec {
             steps: 800,
             batch: 64,
+            width: 64,
             ..ProbeSpec::default()
         },
         oracle: OracleSpec::GroundTruth,

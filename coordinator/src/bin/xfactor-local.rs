@@ -87,6 +87,12 @@ struct Cli {
     /// Peak learning rate of stage 1's warm-up and cosine schedule
     #[arg(long, value_name = "LR", default_value_t = defaults().stage1_peak_lr, value_parser = positive_rate)]
     stage1_peak_lr: f64,
+    /// Steps of the evaluation's pose probe (the paper's: 10000; the first run's: 1000)
+    #[arg(long, value_name = "N", default_value_t = defaults().evaluation.probe_steps as u64, value_parser = clap::value_parser!(u64).range(1..))]
+    probe_steps: u64,
+    /// Width of the evaluation's pose probe (the paper's: 256; the first run's: 64)
+    #[arg(long, value_name = "N", default_value_t = defaults().evaluation.probe_width as u64, value_parser = clap::value_parser!(u64).range(1..))]
+    probe_width: u64,
     /// Training resolution in pixels
     #[arg(long, value_name = "PX", default_value_t = defaults().image_size)]
     image_size: usize,
@@ -145,6 +151,8 @@ fn main() -> anyhow::Result<()> {
     job.trajectories = cli.paths;
     job.seed = cli.seed;
     job.stage1_peak_lr = cli.stage1_peak_lr;
+    job.evaluation.probe_steps = usize::try_from(cli.probe_steps)?;
+    job.evaluation.probe_width = usize::try_from(cli.probe_width)?;
     job.device = cli.device;
     job.allreduce_wire = cli.allreduce_wire;
     if job.checkpoint_dir().exists() {

@@ -447,6 +447,8 @@ pub struct LocalEvaluation {
     pub probe_steps: usize,
     /// Probe batch.
     pub probe_batch: usize,
+    /// Probe MLP width (`features`; the paper's: 256).
+    pub probe_width: usize,
     /// Scenes the probe is tested on (held out of its training).
     pub probe_test_scenes: u64,
     /// The probe's rotation starts at the identity (`evaluate.probe.rotation_from_identity`).
@@ -464,6 +466,7 @@ impl Default for LocalEvaluation {
             reconstruction_sequences: 4,
             probe_steps: 150,
             probe_batch: 16,
+            probe_width: 64,
             probe_test_scenes: 1,
             probe_rotation_from_identity: false,
         }
@@ -479,7 +482,7 @@ impl LocalEvaluation {
             .collect();
         let _ = writeln!(
             yaml,
-            "evaluate:\n  notes: [{}]\n  seed: {}\n  scenes: {}\n  trajectories: {}\n  frames: {}\n  tps_pairs: {}\n  reconstruction_sequences: {}\n  probe: {{steps: {}, batch: {}, width: 64, test_scenes: {}, rotation_from_identity: {}}}",
+            "evaluate:\n  notes: [{}]\n  seed: {}\n  scenes: {}\n  trajectories: {}\n  frames: {}\n  tps_pairs: {}\n  reconstruction_sequences: {}\n  probe: {{steps: {}, batch: {}, width: {}, test_scenes: {}, rotation_from_identity: {}}}",
             notes.join(", "),
             seed,
             self.scenes,
@@ -489,6 +492,7 @@ impl LocalEvaluation {
             self.reconstruction_sequences,
             self.probe_steps,
             self.probe_batch,
+            self.probe_width,
             self.probe_test_scenes,
             self.probe_rotation_from_identity
         );
@@ -506,6 +510,7 @@ impl LocalEvaluation {
             reconstruction_sequences: 128,
             probe_steps: 1000,
             probe_batch: 64,
+            probe_width: 64,
             probe_test_scenes: 4,
             probe_rotation_from_identity: true,
         }
