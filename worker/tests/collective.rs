@@ -2,15 +2,17 @@
 //! that sends a chunk of the wrong size, and streams that do not carry the left neighbour's
 //! ring secret.
 
+mod common;
+
 use std::time::Duration;
 
 use bytes::Bytes;
+use common::{gradient, serve_with, test_tls};
 use proto::v1::Chunk;
 use proto::v1::collective_client::CollectiveClient;
 use tokio_util::sync::CancellationToken;
 use worker::collective::{
-    CollectiveError, CollectiveService, Link, Mailbox, PeerTls, RING_SECRET_KEY, ReduceStats, Ring,
-    RingKeys, spawn_server,
+    CollectiveError, Link, Mailbox, RING_SECRET_KEY, ReduceStats, Ring, RingKeys,
 };
 
 const TOKEN: &str = "ring-test";
@@ -25,28 +27,10 @@ fn plain() -> Link {
 }
 
 fn with_test_certificate() -> Link {
-    let tls = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../proto/testdata/tls");
     Link {
-        tls: Some(
-            PeerTls::from_files(
-                &tls.join("server.pem"),
-                &tls.join("server.key"),
-                &tls.join("ca.pem"),
-                None,
-            )
-            .unwrap(),
-        ),
+        tls: Some(test_tls()),
         ..plain()
     }
-}
-
-async fn serve_with(link: &Link) -> (String, std::sync::Arc<Mailbox>) {
-    let service = CollectiveService::default();
-    let mailbox = service.mailbox();
-    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
-    let address = listener.local_addr().unwrap().to_string();
-    spawn_server(listener, service, link).unwrap();
-    (address, mailbox)
 }
 
 async fn serve() -> (String, std::sync::Arc<Mailbox>) {
@@ -96,13 +80,6 @@ async fn channel_to(address: &str) -> tonic::transport::Channel {
         .connect()
         .await
         .unwrap()
-}
-
-/// Gradient-like values of `rank`: small, of both signs, different on every rank.
-fn gradient(rank: usize, len: usize) -> Vec<f32> {
-    (0..len)
-        .map(|i| ((i * 7919 + rank * 104_729) % 2003) as f32 * 1e-6 - 1e-3)
-        .collect()
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -4,12 +4,13 @@
 //! the job's token nor its secret, and a flood of strangers on a rank's port neither stops the
 //! ring nor makes the rank hold more than the desk's limits.
 
+mod common;
+
 use std::time::Duration;
 
+use common::{gradient, serve_with};
 use tokio_util::sync::CancellationToken;
-use worker::collective::{
-    CollectiveService, Link, Mailbox, Ring, RingKeys, WireFormat, spawn_server,
-};
+use worker::collective::{Link, Mailbox, Ring, RingKeys, WireFormat};
 
 const TOKEN: &str = "lane-test";
 
@@ -23,12 +24,7 @@ fn link(lanes: usize) -> Link {
 }
 
 async fn serve() -> (String, std::sync::Arc<Mailbox>) {
-    let service = CollectiveService::default();
-    let mailbox = service.mailbox();
-    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
-    let address = listener.local_addr().unwrap().to_string();
-    spawn_server(listener, service, &link(1)).unwrap();
-    (address, mailbox)
+    serve_with(&link(1)).await
 }
 
 fn keys(rank: usize, world: usize) -> RingKeys {
@@ -36,13 +32,6 @@ fn keys(rank: usize, world: usize) -> RingKeys {
         own: format!("secret-{rank}"),
         left: format!("secret-{}", (rank + world - 1) % world),
     }
-}
-
-/// Gradient-like values of `rank`: small, of both signs, different on every rank.
-fn gradient(rank: usize, len: usize) -> Vec<f32> {
-    (0..len)
-        .map(|i| ((i * 7919 + rank * 104_729) % 2003) as f32 * 1e-6 - 1e-3)
-        .collect()
 }
 
 /// Every rank's buffer after two all-reduces of `len` values on a ring of `world` ranks with

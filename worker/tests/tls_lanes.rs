@@ -2,44 +2,25 @@
 //! bits as on plain lanes, nothing but the lane's magic in the clear, and a plain lane
 //! refused by a TLS ring with the reason.
 
+mod common;
+
 use std::sync::{Arc, Mutex};
 use std::time::Duration;
 
+use common::{gradient, serve_with as serve, test_tls};
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio_util::sync::CancellationToken;
-use worker::collective::{
-    CollectiveService, Link, Mailbox, PeerTls, Ring, RingKeys, WireFormat, spawn_server,
-};
+use worker::collective::{Link, Mailbox, Ring, RingKeys, WireFormat};
 
 const TOKEN: &str = "tls-lane-test";
 
 fn link(lanes: usize, tls: bool) -> Link {
-    let certificates =
-        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../proto/testdata/tls");
-    let tls = tls.then(|| {
-        PeerTls::from_files(
-            &certificates.join("server.pem"),
-            &certificates.join("server.key"),
-            &certificates.join("ca.pem"),
-            None,
-        )
-        .unwrap()
-    });
     Link {
         token: TOKEN.into(),
         timeout: Duration::from_secs(10),
-        tls,
+        tls: tls.then(test_tls),
         lanes,
     }
-}
-
-async fn serve(link: &Link) -> (String, Arc<Mailbox>) {
-    let service = CollectiveService::default();
-    let mailbox = service.mailbox();
-    let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
-    let address = listener.local_addr().unwrap().to_string();
-    spawn_server(listener, service, link).unwrap();
-    (address, mailbox)
 }
 
 fn keys(rank: usize, world: usize) -> RingKeys {
@@ -47,12 +28,6 @@ fn keys(rank: usize, world: usize) -> RingKeys {
         own: format!("secret-{rank}"),
         left: format!("secret-{}", (rank + world - 1) % world),
     }
-}
-
-fn gradient(rank: usize, len: usize) -> Vec<f32> {
-    (0..len)
-        .map(|i| ((i * 7919 + rank * 104_729) % 2003) as f32 * 1e-6 - 1e-3)
-        .collect()
 }
 
 fn bits(values: &[f32]) -> Vec<u32> {
