@@ -126,6 +126,16 @@ fn help_lists_every_flag_with_its_default() {
         job.micro_batch.to_string(),
     );
     let checkpoint_every = job.checkpoint_every.to_string();
+    let (scenes, paths, seed, peak_lr) = (
+        job.scenes.to_string(),
+        job.trajectories.to_string(),
+        job.seed.to_string(),
+        job.stage1_peak_lr.to_string(),
+    );
+    let (probe_steps, probe_width) = (
+        job.evaluation.probe_steps.to_string(),
+        job.evaluation.probe_width.to_string(),
+    );
     help::assert_flags(
         LOCAL,
         &[],
@@ -135,6 +145,12 @@ fn help_lists_every_flag_with_its_default() {
             ("--stage1-steps", Some(&stage1)),
             ("--stage2-steps", Some(&stage2)),
             ("--preset", Some(&job.preset)),
+            ("--scenes", Some(&scenes)),
+            ("--paths", Some(&paths)),
+            ("--seed", Some(&seed)),
+            ("--stage1-peak-lr", Some(&peak_lr)),
+            ("--probe-steps", Some(&probe_steps)),
+            ("--probe-width", Some(&probe_width)),
             ("--image-size", Some(&image_size)),
             ("--global-batch", Some(&global_batch)),
             ("--micro-batch", Some(&micro_batch)),
@@ -171,6 +187,8 @@ fn bad_values_are_refused_naming_the_flag() {
     );
     help::assert_refused(LOCAL, &["--workers", "two"], "--workers");
     help::assert_refused(LOCAL, &["--preset", "huge"], "--preset");
+    help::assert_refused(LOCAL, &["--scenes", "0"], "--scenes");
+    help::assert_refused(LOCAL, &["--stage1-peak-lr", "0"], "--stage1-peak-lr");
     help::assert_refused(LOCAL, &["--device", "tpu"], "--device");
 }
 

@@ -1,4 +1,4 @@
-//! `xfactor transfer|evaluate|compare`: every flag in `--help` with its default, and bad values
+//! `xfactor transfer|evaluate|compare|curve`: every flag in `--help` with its default, and bad values
 //! refused by the parser naming the flag.
 
 #[path = "../../test-support/help.rs"]
@@ -46,6 +46,19 @@ fn help_lists_every_flag_with_its_default() {
             ("--label", None),
             ("--threshold", Some("20")),
             ("--out", None),
+        ],
+    );
+    help::assert_flags(
+        XFACTOR,
+        &["curve"],
+        &[
+            ("--run", None),
+            ("--stage", Some("1")),
+            ("--spec", None),
+            ("--context-views", None),
+            ("--out", None),
+            ("--backend", Some("cpu")),
+            ("--log-format", Some("human")),
         ],
     );
 }
