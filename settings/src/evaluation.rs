@@ -259,6 +259,7 @@ mod tests {
         );
         let demo = ProbeSpec {
             steps: 1000,
+            width: 64,
             loss: ProbeLoss::Trajectories,
             rotation_from_identity: true,
             ..ProbeSpec::default()

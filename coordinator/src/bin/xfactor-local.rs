@@ -34,11 +34,16 @@ fn wire_format(name: &str) -> Result<WireFormat, serde_norway::Error> {
     serde_norway::from_str(name)
 }
 
+/// A `--stage1-peak-lr` that is not a learning rate.
+#[derive(Debug, thiserror::Error)]
+#[error("`{0}` is not a learning rate above 0")]
+struct NotARate(String);
+
 /// A learning rate: a finite number above 0.
-fn positive_rate(text: &str) -> Result<f64, String> {
+fn positive_rate(text: &str) -> Result<f64, NotARate> {
     match text.parse::<f64>() {
         Ok(rate) if rate.is_finite() && rate > 0.0 => Ok(rate),
-        _ => Err(format!("`{text}` is not a learning rate above 0")),
+        _ => Err(NotARate(text.to_string())),
     }
 }
 
@@ -128,16 +133,8 @@ struct Cli {
     log: LogArgs,
 }
 
-fn main() -> anyhow::Result<()> {
-    let cli = Cli::parse();
-    cli.log.init()?;
-    let dir = cli.dir;
-    let port = match cli.port {
-        Some(port) => port,
-        None => free_port()?,
-    };
-    let mut job = LocalJob::demo(&dir, port);
-    job.listen_host = cli.listen_host;
+/// The run's sizes from the flags: workers, steps, batch, model, data, schedule, evaluation.
+fn size_run(job: &mut LocalJob, cli: &Cli) -> anyhow::Result<()> {
     job.workers = cli.workers;
     job.stage1_steps = cli.stage1_steps;
     job.stage2_steps = cli.stage2_steps;
@@ -146,13 +143,27 @@ fn main() -> anyhow::Result<()> {
     job.checkpoint_every = cli.checkpoint_every;
     job.image_size = cli.image_size;
     job.evaluate = !cli.no_evaluate;
-    job.preset = cli.preset;
+    job.preset = cli.preset.clone();
     job.scenes = cli.scenes;
     job.trajectories = cli.paths;
     job.seed = cli.seed;
     job.stage1_peak_lr = cli.stage1_peak_lr;
     job.evaluation.probe_steps = usize::try_from(cli.probe_steps)?;
     job.evaluation.probe_width = usize::try_from(cli.probe_width)?;
+    Ok(())
+}
+
+fn main() -> anyhow::Result<()> {
+    let cli = Cli::parse();
+    cli.log.init()?;
+    let dir = cli.dir.clone();
+    let port = match cli.port {
+        Some(port) => port,
+        None => free_port()?,
+    };
+    let mut job = LocalJob::demo(&dir, port);
+    size_run(&mut job, &cli)?;
+    job.listen_host = cli.listen_host;
     job.device = cli.device;
     job.allreduce_wire = cli.allreduce_wire;
     if job.checkpoint_dir().exists() {

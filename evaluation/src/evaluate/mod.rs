@@ -394,7 +394,7 @@ mod tests {
         let spec: EvaluationSpec = serde_json::from_str(r#"{"scenes": 4, "oracle": {"kind": "external", "program": "vggt-poses"}, "probe": {"steps": 10}}"#).unwrap();
         assert_eq!(spec.scenes, 4);
         assert_eq!(spec.probe.steps, 10);
-        assert_eq!(spec.probe.width, 64);
+        assert_eq!(spec.probe.width, 256, "the paper's probe width by default");
         assert_eq!(
             spec.oracle,
             OracleSpec::External {
