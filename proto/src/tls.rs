@@ -151,12 +151,14 @@ pub fn lane_server_config(
     let private =
         PrivateKeyDer::from_pem_slice(&key_pem).map_err(|e| unusable("key", key, e.to_string()))?;
     let mut config = rustls::ServerConfig::builder_with_provider(lane_provider())
-        .with_safe_default_protocol_versions()
+        .with_protocol_versions(&[&rustls::version::TLS13])
         .map_err(|e| unusable("certificate", cert, e.to_string()))?
         .with_no_client_auth()
         .with_single_cert(chain, private)
         .map_err(|e| unusable("key", key, e.to_string()))?;
     config.send_tls13_tickets = 0;
+    // The lane seals and opens its records itself once rustls has done the handshake.
+    config.enable_secret_extraction = true;
     Ok(std::sync::Arc::new(config))
 }
 
@@ -177,11 +179,12 @@ pub fn lane_client_config(ca: &Path) -> Result<std::sync::Arc<rustls::ClientConf
             .add(certificate)
             .map_err(|e| unusable(e.to_string()))?;
     }
-    let config = rustls::ClientConfig::builder_with_provider(lane_provider())
-        .with_safe_default_protocol_versions()
+    let mut config = rustls::ClientConfig::builder_with_provider(lane_provider())
+        .with_protocol_versions(&[&rustls::version::TLS13])
         .map_err(|e| unusable(e.to_string()))?
         .with_root_certificates(roots)
         .with_no_client_auth();
+    config.enable_secret_extraction = true;
     Ok(std::sync::Arc::new(config))
 }
 

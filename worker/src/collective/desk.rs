@@ -20,11 +20,12 @@ use std::time::{Duration, Instant};
 use tokio::net::{TcpListener, TcpStream};
 use tokio::sync::mpsc;
 
+use super::carrier::Carrier;
 use super::opening::{
-    HandshakeError, LANE_MAGIC, LaneStream, TLS_LANE_MAGIC, answer, challenge, read_hello,
-    read_magic, refuse,
+    HandshakeError, LANE_MAGIC, TLS_LANE_MAGIC, answer, challenge, read_hello, read_magic, refuse,
 };
 use super::service::{AdmittedLane, Doors, MAX_LANES, Mailbox};
+use super::tls_handshake::{self, TlsHandshakeError};
 
 /// Connections being sorted or handshaking at once, from everyone.
 pub const MAX_HANDSHAKES: usize = 512;
@@ -217,16 +218,15 @@ impl LaneDesk {
     async fn open(
         &self,
         mut tcp: TcpStream,
-    ) -> Result<(LaneStream, proto::v1::LaneHello), OpeningFailed> {
+    ) -> Result<(Carrier, proto::v1::LaneHello), OpeningFailed> {
         let wants_tls = read_magic(&mut tcp).await?;
         let mut stream = match (&self.tls, wants_tls) {
-            (None, false) => LaneStream::Plain(tcp),
+            (None, false) => Carrier::Plain(tcp),
             (Some(config), true) => {
-                let session = tokio_rustls::TlsAcceptor::from(config.clone())
-                    .accept(tcp)
+                let records = tls_handshake::as_server(tcp, config.clone())
                     .await
                     .map_err(OpeningFailed::Tls)?;
-                LaneStream::Tls(Box::new(tokio_rustls::TlsStream::Server(session)))
+                Carrier::Tls(Box::new(records))
             }
             (Some(_), false) => {
                 let _ = refuse(&mut tcp, &LaneRefusal::Tls.to_string()).await;
@@ -262,7 +262,7 @@ enum OpeningFailed {
     Unreadable(#[from] HandshakeError),
     /// The TLS handshake failed.
     #[error("a lane's TLS handshake failed: {0}")]
-    Tls(std::io::Error),
+    Tls(TlsHandshakeError),
     /// A plain lane to a ring that runs TLS (refused with the reason).
     #[error("a plain lane was refused: this rank's ring runs over TLS")]
     PlainToTls,

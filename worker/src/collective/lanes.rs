@@ -93,7 +93,7 @@ impl Ring {
                 continue;
             }
             if answer(&mut arrived.stream, "").await.is_ok() {
-                *slot = Some(arrived.stream.into_carrier());
+                *slot = Some(arrived.stream);
             }
         }
         Ok(left.into_iter().flatten().collect())

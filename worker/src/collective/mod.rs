@@ -24,8 +24,10 @@ mod handshake;
 mod lane;
 mod lanes;
 mod opening;
+mod records;
 mod schedule;
 mod service;
+mod tls_handshake;
 mod wire;
 
 use core::{Attempt, GaveUp, Place, check_place, left_of, right_of, take_in, with_retries};

@@ -8,18 +8,17 @@
 //! a certificate the ring's CA signed, and nobody in between can relay it into a session of
 //! their own.
 
-use std::pin::Pin;
 use std::sync::Arc;
-use std::task::{Context, Poll};
 
 use prost::Message;
 use proto::v1::{LaneAnswer, LaneChallenge, LaneHello, LaneProof};
-use tokio::io::{AsyncRead, AsyncReadExt, AsyncWrite, AsyncWriteExt, ReadBuf};
+use tokio::io::{AsyncRead, AsyncReadExt, AsyncWrite, AsyncWriteExt};
 use tokio::net::TcpStream;
 
 use super::carrier::Carrier;
 use super::core::Attempt;
 use super::handshake::{self, Role};
+use super::tls_handshake::{self, TlsHandshakeError};
 
 /// The first bytes of a plain lane connection (a gRPC connection opens with HTTP/2's preface
 /// or a TLS hello, never with these).
@@ -58,73 +57,6 @@ pub(super) struct LaneTlsClient {
     pub(super) config: Arc<rustls::ClientConfig>,
     /// The neighbour's name.
     pub(super) name: rustls::pki_types::ServerName<'static>,
-}
-
-/// A lane connection during its opening: the TCP connection, or the TLS stream over it.
-pub(super) enum LaneStream {
-    /// A plain lane.
-    Plain(TcpStream),
-    /// A TLS lane, as the dialler (client) or the listener (server).
-    Tls(Box<tokio_rustls::TlsStream<TcpStream>>),
-}
-
-impl LaneStream {
-    /// The carrier the lane's chunks travel on once the opening is done.
-    pub(super) fn into_carrier(self) -> Carrier {
-        match self {
-            Self::Plain(tcp) => Carrier::Plain(tcp),
-            Self::Tls(stream) => match *stream {
-                tokio_rustls::TlsStream::Client(client) => {
-                    let (tcp, session) = client.into_inner();
-                    Carrier::tls(tcp, session)
-                }
-                tokio_rustls::TlsStream::Server(server) => {
-                    let (tcp, session) = server.into_inner();
-                    Carrier::tls(tcp, session)
-                }
-            },
-        }
-    }
-}
-
-impl AsyncRead for LaneStream {
-    fn poll_read(
-        self: Pin<&mut Self>,
-        cx: &mut Context<'_>,
-        buf: &mut ReadBuf<'_>,
-    ) -> Poll<std::io::Result<()>> {
-        match self.get_mut() {
-            Self::Plain(tcp) => Pin::new(tcp).poll_read(cx, buf),
-            Self::Tls(stream) => Pin::new(stream.as_mut()).poll_read(cx, buf),
-        }
-    }
-}
-
-impl AsyncWrite for LaneStream {
-    fn poll_write(
-        self: Pin<&mut Self>,
-        cx: &mut Context<'_>,
-        buf: &[u8],
-    ) -> Poll<std::io::Result<usize>> {
-        match self.get_mut() {
-            Self::Plain(tcp) => Pin::new(tcp).poll_write(cx, buf),
-            Self::Tls(stream) => Pin::new(stream.as_mut()).poll_write(cx, buf),
-        }
-    }
-
-    fn poll_flush(self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<std::io::Result<()>> {
-        match self.get_mut() {
-            Self::Plain(tcp) => Pin::new(tcp).poll_flush(cx),
-            Self::Tls(stream) => Pin::new(stream.as_mut()).poll_flush(cx),
-        }
-    }
-
-    fn poll_shutdown(self: Pin<&mut Self>, cx: &mut Context<'_>) -> Poll<std::io::Result<()>> {
-        match self.get_mut() {
-            Self::Plain(tcp) => Pin::new(tcp).poll_shutdown(cx),
-            Self::Tls(stream) => Pin::new(stream.as_mut()).poll_shutdown(cx),
-        }
-    }
 }
 
 /// Why a lane's handshake message could not be read.
@@ -183,31 +115,29 @@ pub(super) async fn dial(
         LANE_MAGIC
     };
     tcp.write_all(magic).await.map_err(|e| unreachable(&e))?;
-    let mut stream = match tls {
-        None => LaneStream::Plain(tcp),
+    let mut carrier = match tls {
+        None => Carrier::Plain(tcp),
         Some(tls) => {
-            let connector = tokio_rustls::TlsConnector::from(tls.config.clone());
             // A certificate refused is final; a connection lost mid-handshake is not.
-            let session = connector
-                .connect(tls.name.clone(), tcp)
+            let records = tls_handshake::as_client(tcp, tls.config.clone(), tls.name.clone())
                 .await
-                .map_err(|e| match e.kind() {
-                    std::io::ErrorKind::InvalidData => {
-                        Attempt::Refused(format!("the lane's TLS handshake failed: {e}"))
+                .map_err(|e| match e {
+                    TlsHandshakeError::Io(e) => unreachable(&e),
+                    refused => {
+                        Attempt::Refused(format!("the lane's TLS handshake failed: {refused}"))
                     }
-                    _ => unreachable(&e),
                 })?;
-            LaneStream::Tls(Box::new(tokio_rustls::TlsStream::Client(session)))
+            Carrier::Tls(Box::new(records))
         }
     };
-    prove_to_listener(&mut stream, hello, secret).await?;
-    Ok(stream.into_carrier())
+    prove_to_listener(&mut carrier, hello, secret).await?;
+    Ok(carrier)
 }
 
 /// The dialler's side of the mutual proof on an opened connection: the hello, the listener's
 /// proof checked first, then the dialler's own, and the answer.
 async fn prove_to_listener(
-    stream: &mut LaneStream,
+    stream: &mut Carrier,
     hello: &LaneHello,
     secret: &str,
 ) -> Result<(), Attempt> {
@@ -257,7 +187,7 @@ pub(super) async fn read_magic(tcp: &mut TcpStream) -> Result<bool, HandshakeErr
 }
 
 /// Reads a lane's hello, after its magic (and TLS, when the lane runs it).
-pub(super) async fn read_hello(stream: &mut LaneStream) -> Result<LaneHello, HandshakeError> {
+pub(super) async fn read_hello(stream: &mut Carrier) -> Result<LaneHello, HandshakeError> {
     read_framed(stream, MAX_HANDSHAKE_BYTES).await
 }
 
@@ -277,7 +207,7 @@ pub(super) async fn refuse<S: AsyncWrite + Unpin>(
 /// its proof and a fresh nonce, reads the dialler's proof. Returns whether the dialler proved
 /// that it holds the secret (refusing it on the connection when it did not).
 pub(super) async fn challenge(
-    stream: &mut LaneStream,
+    stream: &mut Carrier,
     hello: &LaneHello,
     secret: &str,
 ) -> Result<bool, HandshakeError> {
@@ -297,7 +227,7 @@ pub(super) async fn challenge(
 }
 
 /// Answers a proven lane: an empty refusal admits it (sent once its ring has taken it).
-pub(super) async fn answer(stream: &mut LaneStream, refusal: &str) -> std::io::Result<()> {
+pub(super) async fn answer(stream: &mut Carrier, refusal: &str) -> std::io::Result<()> {
     let answer = LaneAnswer {
         refusal: refusal.to_string(),
     };

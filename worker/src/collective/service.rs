@@ -78,7 +78,7 @@ pub(super) struct Doors {
 pub(super) struct AdmittedLane {
     pub(super) lane: u32,
     pub(super) lanes: u32,
-    pub(super) stream: super::opening::LaneStream,
+    pub(super) stream: super::carrier::Carrier,
 }
 
 /// What a ring reads from after joining a generation.
