@@ -12,3 +12,4 @@ pub mod metrics;
 pub mod plan;
 pub mod progress;
 pub mod service;
+pub mod status;

@@ -103,10 +103,11 @@ async fn run(args: &RunArgs) -> anyhow::Result<()> {
         .await?
         .suspended_by(suspender.clone());
     if let Some(address) = metrics_address {
-        telemetry::http::serve(
+        telemetry::http::serve_with(
             &address,
             service.metrics(),
             telemetry::http::always_healthy(),
+            service.status_page(&token)?,
         )
         .await?;
     }

@@ -53,6 +53,22 @@ pub const CHECKSUM_MISMATCHES: Metric = Metric::counter(
     "Steps whose ranks reported different parameter checksums.",
 );
 
+/// Workers blamed and sent to sit out.
+pub const EXCLUSIONS: Metric = Metric::counter(
+    "xfactor_exclusions_total",
+    "Workers blamed for a failed generation and sent to sit out a back-off.",
+);
+/// Store outage.
+pub const STORE_FAILING_SECONDS: Metric = Metric::gauge(
+    "xfactor_store_failing_seconds",
+    "Seconds the object store has been failing generations (0 while it works).",
+);
+/// When the newest commit landed.
+pub const LAST_COMMIT_TIMESTAMP: Metric = Metric::gauge(
+    "xfactor_last_commit_timestamp_seconds",
+    "Unix time of the newest commit this coordinator accepted.",
+);
+
 /// Publishes one step report. Job-wide loss and learning rate come from rank 0's reports,
 /// which the caller marks with `from_rank0`.
 pub fn record_step(registry: &Registry, report: &StepReport, from_rank0: bool) {
@@ -80,6 +96,7 @@ pub fn record_status(
     phase: Phase,
     samples_per_second: f64,
     mismatches: usize,
+    exclusions: usize,
 ) {
     registry.set(&STAGE, &[], f64::from(phase.number()));
     registry.set(&STEP, &[], status.step as f64);
@@ -89,6 +106,9 @@ pub fn record_status(
     registry.raise_to(&RESTARTS, &[], status.restarts as f64);
     registry.raise_to(&CHECKSUM_MISMATCHES, &[], mismatches as f64);
     registry.set(&SAMPLES_PER_SECOND, &[], samples_per_second);
+    registry.raise_to(&EXCLUSIONS, &[], exclusions as f64);
+    let failing = status.store_failing.map_or(0.0, |d| d.as_secs_f64());
+    registry.set(&STORE_FAILING_SECONDS, &[], failing);
 }
 
 /// Drops the per-worker series of workers that are no longer members (lost, left, or from

@@ -1,18 +1,22 @@
-//! The `/metrics` endpoint: a minimal HTTP/1.1 responder on its own port, enough for
-//! Prometheus scrapes and Kubernetes probes (`/healthz`). Every connection gets one answer and
-//! is closed, so there is no keep-alive state to get wrong.
+//! The metrics port: `/metrics` for Prometheus scrapes, `/healthz` for Kubernetes probes, and
+//! whatever pages a process adds (the coordinator's status page), routed by axum and served by
+//! hyper's HTTP/1.1 server. Every connection gets one answer and is closed, within a deadline,
+//! and only so many are served at once, so a flood of idle connections cannot exhaust sockets.
 
 use std::net::SocketAddr;
 use std::sync::Arc;
 use std::time::Duration;
 
+use axum::Router;
+use axum::extract::State;
+use axum::http::{StatusCode, header};
+use axum::response::IntoResponse;
+use hyper_util::rt::TokioIo;
+use hyper_util::service::TowerToHyperService;
 use tokio::io::{AsyncReadExt, AsyncWriteExt};
 use tokio::net::{TcpListener, TcpStream};
 
 use crate::metrics::Registry;
-
-/// The longest request head accepted; scrapers send a few hundred bytes.
-const MAX_REQUEST_BYTES: usize = 8 * 1024;
 
 /// Connections served at once; more wait to be accepted, so a flood cannot exhaust sockets.
 const MAX_CONNECTIONS: usize = 64;
@@ -55,7 +59,17 @@ pub async fn serve(
     registry: Arc<Registry>,
     health: HealthCheck,
 ) -> Result<SocketAddr, HttpError> {
-    let (bound, serving) = bind(address, registry, health).await?;
+    serve_with(address, registry, health, Router::new()).await
+}
+
+/// [`serve`] with `pages` beside `/metrics` and `/healthz`.
+pub async fn serve_with(
+    address: &str,
+    registry: Arc<Registry>,
+    health: HealthCheck,
+    pages: Router,
+) -> Result<SocketAddr, HttpError> {
+    let (bound, serving) = bind_with(address, registry, health, pages).await?;
     tokio::spawn(serving);
     Ok(bound)
 }
@@ -67,12 +81,27 @@ pub async fn bind(
     registry: Arc<Registry>,
     health: HealthCheck,
 ) -> Result<(SocketAddr, impl Future<Output = ()> + Send + 'static), HttpError> {
+    bind_with(address, registry, health, Router::new()).await
+}
+
+/// [`bind`] with `pages` beside `/metrics` and `/healthz`.
+pub async fn bind_with(
+    address: &str,
+    registry: Arc<Registry>,
+    health: HealthCheck,
+    pages: Router,
+) -> Result<(SocketAddr, impl Future<Output = ()> + Send + 'static), HttpError> {
     let bind_error = |source| HttpError::Bind {
         address: address.to_string(),
         source,
     };
     let listener = TcpListener::bind(address).await.map_err(bind_error)?;
     let bound = listener.local_addr().map_err(bind_error)?;
+    let routes = Router::new()
+        .route("/metrics", axum::routing::get(metrics).with_state(registry))
+        .route("/healthz", axum::routing::get(healthz).with_state(health))
+        .merge(pages)
+        .fallback(|| async { (StatusCode::NOT_FOUND, "try /metrics\n") });
     let slots = Arc::new(tokio::sync::Semaphore::new(MAX_CONNECTIONS));
     let serving = async move {
         loop {
@@ -81,15 +110,12 @@ pub async fn bind(
             };
             match listener.accept().await {
                 Ok((stream, peer)) => {
-                    let registry = Arc::clone(&registry);
-                    let health = Arc::clone(&health);
+                    let service = TowerToHyperService::new(routes.clone());
                     tokio::spawn(async move {
-                        let answered = tokio::time::timeout(
-                            REQUEST_DEADLINE,
-                            answer(stream, &registry, health.as_ref()),
-                        )
-                        .await;
-                        match answered {
+                        let connection = hyper::server::conn::http1::Builder::new()
+                            .keep_alive(false)
+                            .serve_connection(TokioIo::new(stream), service);
+                        match tokio::time::timeout(REQUEST_DEADLINE, connection).await {
                             Ok(Ok(())) => {}
                             Ok(Err(error)) => {
                                 tracing::debug!(%peer, %error, "metrics request failed");
@@ -110,78 +136,86 @@ pub async fn bind(
     Ok((bound, serving))
 }
 
-async fn answer(
-    mut stream: TcpStream,
-    registry: &Registry,
-    health: &(dyn Fn() -> Result<(), Unhealthy> + Send + Sync),
-) -> std::io::Result<()> {
-    let mut head = Vec::with_capacity(512);
-    let mut buffer = [0u8; 1024];
-    let read = async {
-        while !head.windows(4).any(|w| w == b"\r\n\r\n") && head.len() < MAX_REQUEST_BYTES {
-            let n = stream.read(&mut buffer).await?;
-            if n == 0 {
-                break;
-            }
-            head.extend_from_slice(&buffer[..n]);
-        }
-        std::io::Result::Ok(())
-    };
-    read.await?;
-    let request_line = head.split(|&b| b == b'\n').next().unwrap_or_default();
-    let request_line = String::from_utf8_lossy(request_line);
-    let mut parts = request_line.split_whitespace();
-    let (method, path) = (parts.next().unwrap_or(""), parts.next().unwrap_or(""));
-    let path = path.split('?').next().unwrap_or("");
-    let (status, content_type, body) = match (method, path) {
-        ("GET", "/metrics") => (
-            "200 OK",
+async fn metrics(State(registry): State<Arc<Registry>>) -> impl IntoResponse {
+    (
+        [(
+            header::CONTENT_TYPE,
             "text/plain; version=0.0.4; charset=utf-8",
-            registry.render(),
-        ),
-        ("GET", "/healthz") => match health() {
-            Ok(()) => ("200 OK", "text/plain; charset=utf-8", "ok\n".to_string()),
-            Err(reason) => (
-                "503 Service Unavailable",
-                "text/plain; charset=utf-8",
-                format!("{reason}\n"),
-            ),
-        },
-        ("GET", _) => (
-            "404 Not Found",
-            "text/plain; charset=utf-8",
-            "try /metrics\n".to_string(),
-        ),
-        _ => (
-            "405 Method Not Allowed",
-            "text/plain; charset=utf-8",
-            "GET only\n".to_string(),
-        ),
-    };
-    let response = format!(
-        "HTTP/1.1 {status}\r\nContent-Type: {content_type}\r\nContent-Length: {}\r\nConnection: close\r\n\r\n{body}",
-        body.len()
-    );
-    stream.write_all(response.as_bytes()).await?;
-    stream.shutdown().await
+        )],
+        registry.render(),
+    )
+}
+
+async fn healthz(State(health): State<HealthCheck>) -> impl IntoResponse {
+    match health() {
+        Ok(()) => (StatusCode::OK, "ok\n".to_string()),
+        Err(reason) => (StatusCode::SERVICE_UNAVAILABLE, format!("{reason}\n")),
+    }
 }
 
 /// Fetches `http://{address}{path}` and returns the status code and body: what tests and the
 /// local runner use to scrape, without an HTTP client dependency.
 pub async fn get(address: SocketAddr, path: &str) -> std::io::Result<(u16, String)> {
+    let answer = request(address, "GET", path, &[], "").await?;
+    Ok((answer.status, answer.body))
+}
+
+/// An HTTP answer as [`request`] reads it.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Answer {
+    /// Its status code.
+    pub status: u16,
+    /// Its header lines, `name: value` as sent.
+    pub headers: Vec<String>,
+    /// Its body.
+    pub body: String,
+}
+
+impl Answer {
+    /// The value of header `name` (case-insensitive), if it was sent.
+    pub fn header(&self, name: &str) -> Option<&str> {
+        self.headers.iter().find_map(|line| {
+            let (key, value) = line.split_once(':')?;
+            key.trim().eq_ignore_ascii_case(name).then(|| value.trim())
+        })
+    }
+}
+
+/// Sends one HTTP/1.1 request with `headers` and `body` to `address` and reads the answer to
+/// the end (the server closes every connection after its answer).
+pub async fn request(
+    address: SocketAddr,
+    method: &str,
+    path: &str,
+    headers: &[(&str, &str)],
+    body: &str,
+) -> std::io::Result<Answer> {
     let mut stream = TcpStream::connect(address).await?;
-    let request = format!("GET {path} HTTP/1.1\r\nHost: {address}\r\nConnection: close\r\n\r\n");
-    stream.write_all(request.as_bytes()).await?;
+    let mut head = format!(
+        "{method} {path} HTTP/1.1\r\nHost: {address}\r\nConnection: close\r\nContent-Length: {}\r\n",
+        body.len()
+    );
+    for (name, value) in headers {
+        head.push_str(&format!("{name}: {value}\r\n"));
+    }
+    head.push_str("\r\n");
+    stream.write_all(head.as_bytes()).await?;
+    stream.write_all(body.as_bytes()).await?;
     let mut response = Vec::new();
     stream.read_to_end(&mut response).await?;
     let text = String::from_utf8_lossy(&response).into_owned();
     let (head, body) = text.split_once("\r\n\r\n").unwrap_or((&text, ""));
-    let status = head
-        .split_whitespace()
-        .nth(1)
+    let mut lines = head.lines();
+    let status = lines
+        .next()
+        .and_then(|line| line.split_whitespace().nth(1))
         .and_then(|code| code.parse().ok())
         .ok_or_else(|| std::io::Error::new(std::io::ErrorKind::InvalidData, "no status line"))?;
-    Ok((status, body.to_string()))
+    Ok(Answer {
+        status,
+        headers: lines.map(str::to_string).collect(),
+        body: body.to_string(),
+    })
 }
 
 #[cfg(test)]
@@ -215,6 +249,8 @@ mod tests {
             (503, "removed by the coordinator\n".to_string())
         );
         assert_eq!(get(address, "/nope").await.expect("404").0, 404);
+        let posted = request(address, "POST", "/metrics", &[], "").await;
+        assert_eq!(posted.expect("405").status, 405);
     }
 
     #[tokio::test]

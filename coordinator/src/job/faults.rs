@@ -9,7 +9,7 @@ use settings::work::{Activity, StepReport};
 
 use super::members::StepProgress;
 
-use super::{JobState, SKIPPED_EXAMPLES, records};
+use super::{GenerationEnd, JobState, SKIPPED_EXAMPLES, records};
 
 /// The longest wait between groups while the object store keeps failing.
 pub const STORE_BACKOFF_MAX: Duration = Duration::from_secs(8);
@@ -147,7 +147,9 @@ impl JobState {
             "generation failed; the suspect sits out and the group re-forms from the last commit"
         );
         self.blame(suspect, now);
-        self.end_generation(now);
+        let name = self.members.get(&suspect).map_or("?", |m| m.name.as_str());
+        let ended = format!("rank {suspect_rank} ({name}) failed: {reason}");
+        self.end_generation(now, ended);
         true
     }
 
@@ -175,14 +177,21 @@ impl JobState {
             retry_in_s = backoff.as_secs_f64(),
             "generation failed on the object store; no worker is blamed, the group re-forms after the store's back-off"
         );
-        self.end_generation(now);
+        self.end_generation(now, format!("the object store failed: {reason}"));
         true
     }
 
-    /// Ends the running generation at `now` as a restart: the next group re-forms from the
-    /// last commit.
-    pub(super) fn end_generation(&mut self, now: Instant) {
-        self.group = None;
+    /// Ends the running generation at `now` as a restart, for `reason` (kept in the report and
+    /// shown on the status page): the next group re-forms from the last commit.
+    pub(super) fn end_generation(&mut self, now: Instant, reason: String) {
+        if let Some(group) = self.group.take() {
+            self.report.generation_ends.push(GenerationEnd {
+                generation: group.generation,
+                phase: group.phase,
+                step: self.current_step,
+                reason,
+            });
+        }
         self.report.restarts += 1;
         self.lost_at = Some(now);
     }
@@ -225,7 +234,7 @@ impl JobState {
         } else {
             tracing::error!(%location, "a checkpoint the group starts from is corrupt; nothing to fall back to");
         }
-        self.end_generation(now);
+        self.end_generation(now, format!("checkpoint {location} is corrupt"));
         true
     }
 
@@ -259,7 +268,10 @@ impl JobState {
                 self.blame(worker, now);
             }
         }
-        self.end_generation(now);
+        self.end_generation(
+            now,
+            "the replicas' parameter checksums disagreed: rolled back to the last commit".into(),
+        );
         true
     }
 

@@ -30,7 +30,7 @@ mod tests;
 mod verified;
 
 pub use queries::{JobStatus, WorkerSummary};
-pub use records::{Commit, Durable, GenerationStart, Report, StepRecord};
+pub use records::{Commit, Durable, GenerationEnd, GenerationStart, Report, StepRecord};
 pub use suspension::SuspendAnswer;
 
 /// How many skipped-frame examples the report keeps.
@@ -524,7 +524,12 @@ impl JobState {
                     troubled,
                     "abandoning generation; the group re-forms from the last commit"
                 );
-                self.end_generation(now);
+                let reason = if lost {
+                    "a worker was lost (silent, left, stalled or blamed)"
+                } else {
+                    "a worker gave up on its step"
+                };
+                self.end_generation(now, reason.into());
                 changed = true;
             }
         }

@@ -6,7 +6,12 @@ use std::time::{Duration, Instant};
 use settings::{DeviceInUse, Phase};
 use telemetry::curves::{Curve, CurvePanel};
 
+use super::members::MemberState;
 use super::{JobState, StepRecord};
+use crate::status::snapshot::{
+    COMMITS_SHOWN, CommitView, LOSS_POINTS, StatusSnapshot, TimelineEntry, WorkerView, eta_seconds,
+    thinned,
+};
 
 /// Where the job stands, for the `status` command and the metrics.
 #[derive(Debug, Clone, PartialEq)]
@@ -160,6 +165,11 @@ impl JobState {
         self.report.checksum_mismatches.len()
     }
 
+    /// Workers blamed and sent to sit out so far.
+    pub fn exclusions(&self) -> usize {
+        self.report.exclusions.len()
+    }
+
     /// The curves of `phase` as recorded by this coordinator: one row per step, thinned to
     /// evenly spaced steps past [`super::steps::CURVE_POINTS`] (the last run of a step that
     /// was re-run after a restart): the loss and its terms on a logarithmic axis, the learning
@@ -211,5 +221,163 @@ impl JobState {
                 ),
             ],
         }
+    }
+}
+
+/// Step times the ETA averages: the newest of the running phase.
+const ETA_STEPS: usize = 50;
+
+impl JobState {
+    /// The job at a glance at `now`, for the status page and `/api/status`.
+    pub fn snapshot(&self, now: Instant) -> StatusSnapshot {
+        let status = self.status(now);
+        let phase = self.durable.phase;
+        let recent: Vec<f64> = self
+            .steps
+            .retained()
+            .iter()
+            .rev()
+            .filter(|record| record.phase == phase)
+            .take(ETA_STEPS)
+            .map(|record| record.step_s)
+            .collect();
+        let stage2_steps_left = if phase == Phase::Stage1 {
+            self.plan.stage(Phase::Stage2).steps
+        } else {
+            0
+        };
+        let eta_s = phase.is_training().then(|| {
+            let left = status.total_steps.saturating_sub(status.step) + stage2_steps_left;
+            eta_seconds(left, &recent)
+        });
+        StatusSnapshot {
+            job: status.job_name.clone(),
+            phase: phase.to_string(),
+            state: self.state_line(),
+            generation: status.generation,
+            step: status.step,
+            stage_steps: status.total_steps,
+            job_steps_done: status.job_steps_done,
+            job_steps_total: status.job_steps_total,
+            eta_s: eta_s.flatten(),
+            last_loss: status.last_loss,
+            samples_per_s: self.group_throughput(),
+            store_failing_s: status.store_failing.map(|d| d.as_secs_f64()),
+            workers: self.worker_views(now),
+            timeline: self.timeline(),
+            faults: self
+                .report
+                .exclusions
+                .iter()
+                .map(|e| {
+                    format!(
+                        "{} ({}) blamed, failure {}: sits out {:.0} s",
+                        e.worker, e.address, e.failures, e.seconds
+                    )
+                })
+                .chain(self.report.checksum_mismatches.iter().cloned())
+                .chain(
+                    self.report
+                        .fallbacks
+                        .iter()
+                        .map(|l| format!("commit {l} found corrupt: fell back")),
+                )
+                .collect(),
+            commits: self
+                .report
+                .commits
+                .iter()
+                .rev()
+                .take(COMMITS_SHOWN)
+                .map(|c| CommitView {
+                    phase: c.phase.to_string(),
+                    step: c.step,
+                    location: c.location.clone(),
+                })
+                .collect(),
+            loss: self.loss_points(),
+            evaluation: self.report.evaluation.clone(),
+        }
+    }
+
+    /// Running, waiting, finished or failed, in a few words.
+    fn state_line(&self) -> String {
+        match (&self.durable.failure, self.finished(), &self.group) {
+            (Some(failure), _, _) => format!("failed: {failure}"),
+            (None, true, _) => "finished".into(),
+            (None, false, Some(_)) => "running".into(),
+            (None, false, None) => "waiting for workers".into(),
+        }
+    }
+
+    fn worker_views(&self, now: Instant) -> Vec<WorkerView> {
+        self.members
+            .iter()
+            .map(|(&id, member)| WorkerView {
+                id,
+                name: member.name.clone(),
+                device: member
+                    .device
+                    .as_ref()
+                    .map_or("-".into(), |d| d.name.clone()),
+                samples_per_s: member.samples_per_s,
+                heartbeat_age_s: now
+                    .saturating_duration_since(member.last_seen)
+                    .as_secs_f64(),
+                state: match member.state {
+                    MemberState::Working(progress) => {
+                        format!("{:?} step {}", progress.activity, progress.step).to_lowercase()
+                    }
+                    MemberState::Waiting { .. } => "waiting for work".into(),
+                    MemberState::Lost => "lost".into(),
+                },
+                faults: self
+                    .report
+                    .exclusions
+                    .iter()
+                    .filter(|e| e.address == member.address)
+                    .map(|e| e.failures)
+                    .max()
+                    .unwrap_or(0),
+            })
+            .collect()
+    }
+
+    /// Generations' starts and ends, oldest first.
+    fn timeline(&self) -> Vec<TimelineEntry> {
+        let starts = self.report.generations.iter().map(|g| {
+            let from = match (g.resume_from.as_str(), g.init_weights_from.as_str()) {
+                ("", "") => "the stage's start".to_string(),
+                ("", weights) => format!("the weights of {weights}"),
+                (commit, _) => commit.to_string(),
+            };
+            let event = format!("{} on {} ranks from {from}", g.phase, g.world_size);
+            ((g.generation, 0), event)
+        });
+        let ends = self.report.generation_ends.iter().map(|e| {
+            let event = format!("ended at step {}: {}", e.step, e.reason);
+            ((e.generation, 1), event)
+        });
+        let mut entries: Vec<_> = starts.chain(ends).collect();
+        entries.sort_by_key(|(order, _)| *order);
+        entries
+            .into_iter()
+            .map(|((generation, _), event)| TimelineEntry { generation, event })
+            .collect()
+    }
+
+    /// The loss over both stages, stage 2's steps counted after stage 1's, thinned.
+    fn loss_points(&self) -> Vec<(u64, f32)> {
+        let stage1_steps = self.plan.stage(Phase::Stage1).steps;
+        let points: Vec<(u64, f32)> = [(Phase::Stage1, 0), (Phase::Stage2, stage1_steps)]
+            .into_iter()
+            .flat_map(|(phase, offset)| {
+                self.steps
+                    .curve(phase)
+                    .into_iter()
+                    .map(move |(step, row)| (offset + step, row.loss))
+            })
+            .collect();
+        thinned(&points, LOSS_POINTS)
     }
 }

@@ -185,6 +185,8 @@ pub struct Report {
     pub fallbacks: Vec<String>,
     /// Every generation: its group and where it started from.
     pub generations: Vec<GenerationStart>,
+    /// Every generation that ended before its stage did: when, and why.
+    pub generation_ends: Vec<GenerationEnd>,
     /// Workers blamed for a failed generation and sent to sit out a back-off.
     pub exclusions: Vec<Exclusion>,
     /// Frames skipped (corrupt, missing or unreadable) over the whole job.
@@ -204,6 +206,20 @@ pub struct Exclusion {
     pub failures: u32,
     /// How long it sits out.
     pub seconds: f64,
+}
+
+/// How one generation ended before its stage did.
+#[derive(Debug, Clone, Serialize)]
+pub struct GenerationEnd {
+    /// The generation.
+    pub generation: u64,
+    /// Its phase.
+    #[serde(rename = "stage", with = "settings::phase::as_number")]
+    pub phase: Phase,
+    /// The step the job stood at.
+    pub step: u64,
+    /// Why it ended.
+    pub reason: String,
 }
 
 /// How one generation started.

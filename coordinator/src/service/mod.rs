@@ -220,6 +220,14 @@ impl CoordinatorService {
         Arc::clone(&self.metrics)
     }
 
+    /// The status page's routes, shown to holders of `token`, for the metrics port.
+    pub fn status_page(
+        &self,
+        token: &str,
+    ) -> Result<axum::Router, crate::status::routes::NoSession> {
+        crate::status::routes::routes(Arc::clone(&self.state), token)
+    }
+
     fn publish(&self, state: &JobState) {
         let live: Vec<String> = state.live_workers().iter().map(u64::to_string).collect();
         metrics::forget_departed(&self.metrics, &live);
@@ -229,6 +237,7 @@ impl CoordinatorService {
             state.phase(),
             state.group_throughput(),
             state.mismatches(),
+            state.exclusions(),
         );
     }
 

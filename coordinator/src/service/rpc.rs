@@ -430,6 +430,10 @@ impl CoordinatorService {
             return refuse(refusal.to_string());
         }
         self.metrics.add(&metrics::COMMITS, &[], 1.0);
+        let now = std::time::SystemTime::now()
+            .duration_since(std::time::UNIX_EPOCH)
+            .map_or(0.0, |d| d.as_secs_f64());
+        self.metrics.set(&metrics::LAST_COMMIT_TIMESTAMP, &[], now);
         drop(state);
         drop(version);
         self.changed.notify_waiters();

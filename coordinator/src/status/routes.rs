@@ -1,0 +1,115 @@
+//! The status page's routes on the metrics port: `/` (the page, or a form asking for the job
+//! token), `POST /login` (the token, answered with a session cookie), and `/api/status` (the
+//! same snapshot as JSON, for the cookie or `Authorization: Bearer <token>`). Nothing of the
+//! job is shown without the token; the cookie is a random session value, never the token.
+
+use std::sync::Arc;
+use std::time::Instant;
+
+use axum::Form;
+use axum::Router;
+use axum::extract::State;
+use axum::http::{HeaderMap, StatusCode, header};
+use axum::response::{Html, IntoResponse, Redirect, Response};
+use serde::Deserialize;
+use tokio::sync::Mutex;
+
+use super::page;
+use crate::job::JobState;
+
+/// The session cookie's name.
+const COOKIE: &str = "xfactor_status";
+
+/// What the routes share: the job, its token and the session value given for it.
+#[derive(Clone)]
+struct Viewing {
+    state: Arc<Mutex<JobState>>,
+    token: Arc<str>,
+    session: Arc<str>,
+}
+
+/// Why the routes could not be set up.
+#[derive(Debug, thiserror::Error)]
+#[error("no random session value for the status page: {0}")]
+pub struct NoSession(String);
+
+/// The status page's routes over the job `state`, shown to holders of `token`.
+pub fn routes(state: Arc<Mutex<JobState>>, token: &str) -> Result<Router, NoSession> {
+    let mut random = [0u8; 24];
+    getrandom::fill(&mut random).map_err(|e| NoSession(e.to_string()))?;
+    let session: String = random.iter().map(|b| format!("{b:02x}")).collect();
+    let viewing = Viewing {
+        state,
+        token: token.into(),
+        session: session.into(),
+    };
+    Ok(Router::new()
+        .route("/", axum::routing::get(page_or_login))
+        .route("/login", axum::routing::post(login))
+        .route("/api/status", axum::routing::get(api_status))
+        .with_state(viewing))
+}
+
+/// Equality that takes as long whatever the first difference.
+fn same(a: &[u8], b: &[u8]) -> bool {
+    a.len() == b.len() && a.iter().zip(b).fold(0u8, |acc, (x, y)| acc | (x ^ y)) == 0
+}
+
+impl Viewing {
+    /// Whether `headers` carry the session cookie or the token as a bearer.
+    fn admits(&self, headers: &HeaderMap) -> bool {
+        let cookie = headers
+            .get_all(header::COOKIE)
+            .iter()
+            .filter_map(|value| value.to_str().ok())
+            .flat_map(|value| value.split(';'))
+            .filter_map(|pair| pair.trim().split_once('='))
+            .any(|(name, value)| name == COOKIE && same(value.as_bytes(), self.session.as_bytes()));
+        let bearer = headers
+            .get(header::AUTHORIZATION)
+            .and_then(|value| value.to_str().ok())
+            .and_then(|value| value.strip_prefix("Bearer "))
+            .is_some_and(|token| same(token.trim().as_bytes(), self.token.as_bytes()));
+        cookie || bearer
+    }
+
+    async fn snapshot(&self) -> super::snapshot::StatusSnapshot {
+        self.state.lock().await.snapshot(Instant::now())
+    }
+}
+
+async fn page_or_login(State(viewing): State<Viewing>, headers: HeaderMap) -> Response {
+    if !viewing.admits(&headers) {
+        return (StatusCode::UNAUTHORIZED, Html(page::login(None))).into_response();
+    }
+    Html(page::render(&viewing.snapshot().await)).into_response()
+}
+
+#[derive(Deserialize)]
+struct Login {
+    token: String,
+}
+
+async fn login(State(viewing): State<Viewing>, Form(form): Form<Login>) -> Response {
+    if !same(form.token.as_bytes(), viewing.token.as_bytes()) {
+        tracing::warn!("status page: a wrong token was entered");
+        let page = page::login(Some("That is not this job's token."));
+        return (StatusCode::UNAUTHORIZED, Html(page)).into_response();
+    }
+    let cookie = format!(
+        "{COOKIE}={}; Path=/; HttpOnly; SameSite=Strict",
+        viewing.session
+    );
+    ([(header::SET_COOKIE, cookie)], Redirect::to("/")).into_response()
+}
+
+async fn api_status(State(viewing): State<Viewing>, headers: HeaderMap) -> Response {
+    let json = [(header::CONTENT_TYPE, "application/json")];
+    if !viewing.admits(&headers) {
+        let refusal = r#"{"error":"this job's token is needed (Authorization: Bearer)"}"#;
+        return (StatusCode::UNAUTHORIZED, json, refusal).into_response();
+    }
+    // A snapshot is plain strings and numbers: serialising it cannot fail.
+    let body = serde_json::to_string(&viewing.snapshot().await).unwrap_or_default();
+    (json, body).into_response()
+}
