@@ -160,6 +160,7 @@ fn help_lists_every_flag_with_its_default() {
             ("--no-evaluate", None),
             ("--prepare-only", None),
             ("--port", None),
+            ("--status-port", None),
             ("--listen-host", Some("127.0.0.1")),
             ("--log-format", Some("human")),
         ],

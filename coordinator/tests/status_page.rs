@@ -8,8 +8,8 @@ use std::net::SocketAddr;
 use std::time::{Duration, Instant};
 
 use common::{Running, small_job};
+use coordinator::job::snapshot::StatusSnapshot;
 use coordinator::local::free_port;
-use coordinator::status::snapshot::StatusSnapshot;
 use telemetry::http::{Answer, request};
 
 fn ask(port: u16, method: &str, path: &str, headers: &[(&str, &str)], body: &str) -> Answer {

@@ -126,6 +126,9 @@ struct Cli {
     /// The coordinator's port (by default a free one)
     #[arg(long, value_name = "PORT")]
     port: Option<u16>,
+    /// The port of the coordinator's status page and /metrics (by default a free one)
+    #[arg(long, value_name = "PORT")]
+    status_port: Option<u16>,
     /// The host the coordinator listens on (0.0.0.0 for workers on other hosts)
     #[arg(long, value_name = "HOST", default_value = "127.0.0.1")]
     listen_host: String,
@@ -164,6 +167,10 @@ fn main() -> anyhow::Result<()> {
     let mut job = LocalJob::demo(&dir, port);
     size_run(&mut job, &cli)?;
     job.listen_host = cli.listen_host;
+    job.coordinator_metrics_port = Some(match cli.status_port {
+        Some(port) => port,
+        None => free_port()?,
+    });
     job.device = cli.device;
     job.allreduce_wire = cli.allreduce_wire;
     if job.checkpoint_dir().exists() {
@@ -189,6 +196,9 @@ fn main() -> anyhow::Result<()> {
         workers = job.workers,
         "coordinator and workers started; logs in coordinator.log and worker-*.log"
     );
+    if let Some(port) = job.coordinator_metrics_port {
+        tracing::info!(token = job.token(), "status page: http://127.0.0.1:{port}/");
+    }
     let done = Arc::new(AtomicBool::new(false));
     let bar = std::io::stderr()
         .is_terminal()

@@ -23,6 +23,7 @@ mod forming;
 mod members;
 mod queries;
 mod records;
+pub mod snapshot;
 mod steps;
 mod suspension;
 #[cfg(test)]

@@ -7,11 +7,11 @@ use settings::{DeviceInUse, Phase};
 use telemetry::curves::{Curve, CurvePanel};
 
 use super::members::MemberState;
-use super::{JobState, StepRecord};
-use crate::status::snapshot::{
+use super::snapshot::{
     COMMITS_SHOWN, CommitView, LOSS_POINTS, StatusSnapshot, TimelineEntry, WorkerView, eta_seconds,
     thinned,
 };
+use super::{JobState, StepRecord};
 
 /// Where the job stands, for the `status` command and the metrics.
 #[derive(Debug, Clone, PartialEq)]

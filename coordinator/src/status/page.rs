@@ -6,7 +6,7 @@ use std::fmt::Write;
 
 use telemetry::plot::{Chart, Figure, Panel, Series};
 
-use super::snapshot::StatusSnapshot;
+use crate::job::snapshot::StatusSnapshot;
 
 /// Seconds between the page's reloads.
 pub const REFRESH_SECONDS: u32 = 5;
@@ -225,8 +225,8 @@ fn loss_svg(s: &StatusSnapshot) -> String {
 
 #[cfg(test)]
 mod tests {
-    use super::super::snapshot::{TimelineEntry, WorkerView};
     use super::*;
+    use crate::job::snapshot::{TimelineEntry, WorkerView};
 
     fn snapshot() -> StatusSnapshot {
         StatusSnapshot {

@@ -73,7 +73,7 @@ impl Viewing {
         cookie || bearer
     }
 
-    async fn snapshot(&self) -> super::snapshot::StatusSnapshot {
+    async fn snapshot(&self) -> crate::job::snapshot::StatusSnapshot {
         self.state.lock().await.snapshot(Instant::now())
     }
 }
@@ -96,8 +96,10 @@ async fn login(State(viewing): State<Viewing>, Form(form): Form<Login>) -> Respo
         let page = page::login(Some("That is not this job's token."));
         return (StatusCode::UNAUTHORIZED, Html(page)).into_response();
     }
+    // Lax, so that the page opens from a link or a bookmark: the page only reads, so the
+    // cross-site requests Lax lets through (top-level GETs) change nothing.
     let cookie = format!(
-        "{COOKIE}={}; Path=/; HttpOnly; SameSite=Strict",
+        "{COOKIE}={}; Path=/; HttpOnly; SameSite=Lax",
         viewing.session
     );
     ([(header::SET_COOKIE, cookie)], Redirect::to("/")).into_response()
