@@ -1,5 +1,5 @@
 #!/usr/bin/env bash
-# The data path's scaling benchmark (issue 40; README, "The data path"). Needs root: every
+# The data path's scaling benchmark (issue 40; docs/data-path.md). Needs root: every
 # rank runs in a network namespace of its own, joined to a bridge by a veth whose egress is
 # shaped with tc (netem rate and delay).
 #

@@ -1,6 +1,6 @@
 #!/usr/bin/env bash
 # Runs a cargo command with one of the off-by-default GPU features of trainer-core, worker and
-# evaluation (README, GPUs), preparing what that feature needs first:
+# evaluation (docs/gpus.md), preparing what that feature needs first:
 #   vulkan    cubecl-spirv 0.11.3 with scripts/patches/cubecl-spirv-0.11.3-implicit-shared-memory.patch
 #             applied, in a copy under the cache, given to cargo as a [patch] for this command only
 #             (Cargo.lock is put back afterwards, so the default build keeps crates.io's crate)

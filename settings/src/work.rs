@@ -76,8 +76,8 @@ pub const MAX_RING_LANES: usize = 64;
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub enum ChecksumEvery {
     /// Every rank derives the interval from the model's size alone (so all ranks agree): the
-    /// fewest steps that keep the checksum under 2% of the steps' time (README, "The data
-    /// path"): every step for small models, about every 19 at the paper's size.
+    /// fewest steps that keep the checksum under 2% of the steps' time (docs/data-path.md):
+    /// every step for small models, about every 19 at the paper's size.
     #[default]
     Auto,
     /// Every this many steps (at least 1).

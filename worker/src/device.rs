@@ -27,7 +27,7 @@ pub enum DeviceMissing {
     /// The backend's cargo feature was off when this worker was built.
     #[error(
         "--device {backend}: this worker was built without the `{feature}` cargo feature; \
-         rebuild it with `cargo build --release -p worker --features {feature}` (README, GPUs) \
+         rebuild it with `cargo build --release -p worker --features {feature}` (docs/gpus.md) \
          or choose --device auto, cpu or wgpu"
     )]
     NotInThisBuild {

@@ -374,8 +374,7 @@ pub struct WorkersConfig {
     /// again, doubled for each further failure (at most an hour).
     pub exclusion_s: NonNegative,
     /// Parameter checksums every this many steps, or `auto` (the default): the fewest steps
-    /// that keep them under 2% of the steps' time for the model's size (README, "The data
-    /// path").
+    /// that keep them under 2% of the steps' time for the model's size (docs/data-path.md).
     pub checksum_every: ChecksumEvery,
     /// How the ring carries gradients: `f32` (every bit) or `bf16` (half the bytes, summed
     /// in float32).

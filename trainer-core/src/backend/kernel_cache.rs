@@ -1,7 +1,7 @@
 //! Where cubecl keeps the kernels it compiles and the kernels autotune chose, across processes.
 //!
 //! On an H200 the CUDA road's first paper-model step spent minutes compiling autotune's
-//! candidates with NVRTC, one after another, with the GPU idle (README, GPUs). cubecl keeps
+//! candidates with NVRTC, one after another, with the GPU idle (docs/gpus.md). cubecl keeps
 //! autotune's choices on disk by default, in a folder that depends on the working folder (a
 //! checkout's `target/`, else the user's cache), and keeps compiled kernels only when asked.
 //! A worker restarted after a fault, or in a fresh container, then pays the minutes again.

@@ -32,7 +32,7 @@ pub struct BackendArgs {
 pub enum DeviceError {
     /// The backend's cargo feature was off when this binary was built.
     #[error(
-        "{backend} is not in this build: rebuild with `--features {feature}` (README, GPUs), \
+        "{backend} is not in this build: rebuild with `--features {feature}` (docs/gpus.md), \
          or choose cpu or wgpu"
     )]
     NotInThisBuild {
