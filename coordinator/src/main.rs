@@ -60,8 +60,12 @@ struct RunArgs {
 #[derive(Debug, clap::Args)]
 struct StatusArgs {
     /// The coordinator, http(s)://HOST:PORT
-    #[arg(long, value_name = "URL")]
-    address: String,
+    #[arg(long, value_name = "URL", required_unless_present = "page")]
+    address: Option<String>,
+    /// Read the status page's /api/status at the coordinator's metrics address instead (the
+    /// snapshot the page draws)
+    #[arg(long, value_name = "HOST:PORT", conflicts_with = "address")]
+    page: Option<String>,
     #[command(flatten)]
     token: TokenArgs,
     #[command(flatten)]
@@ -176,8 +180,18 @@ async fn suspend_on_usr1(suspender: tokio_util::sync::CancellationToken) {
 }
 
 async fn status(args: &StatusArgs) -> anyhow::Result<()> {
-    let address = &args.address;
     let token = args.token.resolve()?;
+    let address = match (&args.address, &args.page) {
+        (_, Some(page)) => {
+            let snapshot = coordinator::status::fetch(page, &token).await?;
+            for line in coordinator::status::summary(&snapshot) {
+                println!("{line}");
+            }
+            return Ok(());
+        }
+        (Some(address), None) => address,
+        (None, None) => bail!("give --address (the coordinator) or --page (its metrics address)"),
+    };
     let mut endpoint = tonic::transport::Endpoint::from_shared(address.clone())
         .with_context(|| format!("`{address}` is not a URL"))?;
     if let Some(tls) = args.tls.client_config(endpoint.uri())? {

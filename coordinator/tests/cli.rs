@@ -108,6 +108,7 @@ fn help_lists_every_flag_with_its_default() {
         &["status"],
         &[
             ("--address", None),
+            ("--page", None),
             ("--token", None),
             ("--token-env", Some("XFACTOR_TOKEN")),
             ("--tls-ca", None),
@@ -186,6 +187,7 @@ fn bad_values_are_refused_naming_the_flag() {
         ],
         "--tls-ca",
     );
+    help::assert_refused(COORDINATOR, &["status", "--token", "t"], "--address");
     help::assert_refused(LOCAL, &["--workers", "two"], "--workers");
     help::assert_refused(LOCAL, &["--preset", "huge"], "--preset");
     help::assert_refused(LOCAL, &["--scenes", "0"], "--scenes");
