@@ -61,6 +61,30 @@ fn wait_for(
     }
 }
 
+/// `xfactor-coordinator status --page` prints the snapshot the page draws, and is refused
+/// without the token.
+fn status_command_reads_the_page(port: u16, token: &str) {
+    let binary = env!("CARGO_BIN_EXE_xfactor-coordinator");
+    let page_address = format!("127.0.0.1:{port}");
+    let printed = std::process::Command::new(binary)
+        .args(["status", "--page", &page_address, "--token", token])
+        .output()
+        .unwrap();
+    let text = String::from_utf8_lossy(&printed.stdout);
+    assert!(printed.status.success(), "{text}");
+    assert!(
+        text.starts_with("job=") && text.contains("phase=stage1"),
+        "{text}"
+    );
+    assert_eq!(text.lines().filter(|l| l.starts_with("worker=")).count(), 2);
+    let refused = std::process::Command::new(binary)
+        .args(["status", "--page", &page_address, "--token", "guess"])
+        .output()
+        .unwrap();
+    assert!(!refused.status.success());
+    assert!(String::from_utf8_lossy(&refused.stderr).contains("401"));
+}
+
 #[test]
 fn the_status_page_shows_the_job_to_its_token_and_a_killed_worker_as_a_fault() {
     let dir = tempfile::tempdir().unwrap();
@@ -116,32 +140,7 @@ fn the_status_page_shows_the_job_to_its_token_and_a_killed_worker_as_a_fault() {
     }
     assert!(page.body.contains("<svg"), "the loss curve");
 
-    // The status command reads the same snapshot; without the token it is refused.
-    let binary = env!("CARGO_BIN_EXE_xfactor-coordinator");
-    let page_address = format!("127.0.0.1:{port}");
-    let printed = std::process::Command::new(binary)
-        .args([
-            "status",
-            "--page",
-            &page_address,
-            "--token",
-            running.job.token(),
-        ])
-        .output()
-        .unwrap();
-    let text = String::from_utf8_lossy(&printed.stdout);
-    assert!(printed.status.success(), "{text}");
-    assert!(
-        text.starts_with("job=") && text.contains("phase=stage1"),
-        "{text}"
-    );
-    assert_eq!(text.lines().filter(|l| l.starts_with("worker=")).count(), 2);
-    let refused = std::process::Command::new(binary)
-        .args(["status", "--page", &page_address, "--token", "guess"])
-        .output()
-        .unwrap();
-    assert!(!refused.status.success());
-    assert!(String::from_utf8_lossy(&refused.stderr).contains("401"));
+    status_command_reads_the_page(port, running.job.token());
 
     running.workers[1].kill().unwrap();
     let faulted = wait_for(&running, port, "the killed worker shown as lost", |s| {
