@@ -64,41 +64,32 @@ trait Unbuffered: Sized {
     ) -> Result<(rustls::ExtractedSecrets, KernelConnection<Self::Side>), rustls::Error>;
 }
 
-impl Unbuffered for UnbufferedClientConnection {
-    type Side = ClientConnectionData;
-    fn process<'c, 'i>(
-        &'c mut self,
-        incoming: &'i mut [u8],
-    ) -> UnbufferedStatus<'c, 'i, Self::Side> {
-        self.process_tls_records(incoming)
-    }
-    fn handshaking(&self) -> bool {
-        self.is_handshaking()
-    }
-    fn into_keys(
-        self,
-    ) -> Result<(rustls::ExtractedSecrets, KernelConnection<Self::Side>), rustls::Error> {
-        self.dangerous_into_kernel_connection()
-    }
+/// The two sides offer the same methods on different types; one implementation for both.
+macro_rules! unbuffered {
+    ($connection:ty, $side:ty) => {
+        impl Unbuffered for $connection {
+            type Side = $side;
+            fn process<'c, 'i>(
+                &'c mut self,
+                incoming: &'i mut [u8],
+            ) -> UnbufferedStatus<'c, 'i, Self::Side> {
+                self.process_tls_records(incoming)
+            }
+            fn handshaking(&self) -> bool {
+                self.is_handshaking()
+            }
+            fn into_keys(
+                self,
+            ) -> Result<(rustls::ExtractedSecrets, KernelConnection<Self::Side>), rustls::Error>
+            {
+                self.dangerous_into_kernel_connection()
+            }
+        }
+    };
 }
 
-impl Unbuffered for UnbufferedServerConnection {
-    type Side = ServerConnectionData;
-    fn process<'c, 'i>(
-        &'c mut self,
-        incoming: &'i mut [u8],
-    ) -> UnbufferedStatus<'c, 'i, Self::Side> {
-        self.process_tls_records(incoming)
-    }
-    fn handshaking(&self) -> bool {
-        self.is_handshaking()
-    }
-    fn into_keys(
-        self,
-    ) -> Result<(rustls::ExtractedSecrets, KernelConnection<Self::Side>), rustls::Error> {
-        self.dangerous_into_kernel_connection()
-    }
-}
+unbuffered!(UnbufferedClientConnection, ClientConnectionData);
+unbuffered!(UnbufferedServerConnection, ServerConnectionData);
 
 /// What the handshake needs next.
 enum Next {
