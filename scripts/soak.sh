@@ -3,6 +3,8 @@
 #
 #   sudo -E scripts/soak.sh [--no-build] [--seed N] [--minutes M] [--stage1-steps N] [--stage2-steps N]
 #                           [--instance I]   (0-9: its own subnet and names, to run beside others)
+#                           [--keep]         (keep the logs and store of a soak that passed; one
+#                                             that failed always keeps them)
 #
 # Needs root (network namespaces, tc, tcpdump). Installs tcpdump if missing; moto's S3 server
 # comes from scripts/setup.sh. --minutes is the window in which faults start; the job must
@@ -15,7 +17,7 @@ set -euo pipefail
 cd "$(dirname "$0")/.."
 source scripts/env.sh
 
-build=1 seed=1 minutes=20 stage1="" stage2="" instance=0
+build=1 seed=1 minutes=20 stage1="" stage2="" instance=0 keep=0
 while [ $# -gt 0 ]; do
     case "$1" in
         --no-build) build=0 ;;
@@ -24,6 +26,7 @@ while [ $# -gt 0 ]; do
         --stage1-steps) stage1=$2; shift ;;
         --stage2-steps) stage2=$2; shift ;;
         --instance) instance=$2; shift ;;
+        --keep) keep=1 ;;
         *) echo "soak: unknown argument $1" >&2; exit 2 ;;
     esac
     shift
@@ -47,5 +50,14 @@ stage1=${stage1:-$(awk -v m="$minutes" 'BEGIN { printf "%d", m * 60 * 11 }')}
 stage2=${stage2:-$(( stage1 / 4 ))}
 dir=$(mktemp -d /tmp/xfactor-soak.XXXXXX)
 echo "soak: seed $seed, logs in $dir" >&2
+status=0
 "$python" scripts/soak.py --seed "$seed" --minutes "$minutes" --stage1-steps "$stage1" \
-    --stage2-steps "$stage2" --dir "$dir" --binaries "$CARGO_TARGET_DIR/release" --instance "$instance"
+    --stage2-steps "$stage2" --dir "$dir" --binaries "$CARGO_TARGET_DIR/release" --instance "$instance" \
+    || status=$?
+# A passed soak's folder (logs, the S3 store, the capture) takes gigabytes: gone unless kept.
+if [ "$status" = 0 ] && [ "$keep" = 0 ]; then
+    rm -rf "$dir"
+else
+    echo "soak: logs kept in $dir" >&2
+fi
+exit "$status"
