@@ -4,15 +4,16 @@
 # `xfactor curve` evaluates every stage-1 commit the same way (TPS AUC@30 against steps). One
 # key=value line per seed, then the spread over the seeds and whether every seed's stage-1
 # transfers lead the oracle's unrelated-path calibration by --spreads of their combined
-# spreads (exit 1 when one does not). Extra arguments go to xfactor-local (they override the
+# spreads (exit 1 when one does not; --no-check: report only, as the ablations of
+# scripts/table3-miniature.sh need). Extra arguments go to xfactor-local (they override the
 # recipe's flags).
 #
 #   scripts/transfer-recipe.sh [--seeds 7,8,9] [--out transfer-runs] [--spreads 3] [--no-build]
-#                              [--no-curve] [-- XFACTOR_LOCAL_FLAGS...]
+#                              [--no-curve] [--no-check] [-- XFACTOR_LOCAL_FLAGS...]
 set -euo pipefail
 cd "$(dirname "$0")/.."
 source scripts/env.sh
-SEEDS=7,8,9 OUT=transfer-runs SPREADS=3 BUILD=1 CURVE=1
+SEEDS=7,8,9 OUT=transfer-runs SPREADS=3 BUILD=1 CURVE=1 CHECK=1
 while [ $# -gt 0 ]; do
     case "$1" in
         --seeds) SEEDS="$2"; shift ;;
@@ -20,15 +21,17 @@ while [ $# -gt 0 ]; do
         --spreads) SPREADS="$2"; shift ;;
         --no-build) BUILD=0 ;;
         --no-curve) CURVE=0 ;;
+        --no-check) CHECK=0 ;;
         --) shift; break ;;
         *) echo "transfer-recipe: unknown argument $1 (xfactor-local's flags go after --)" >&2; exit 2 ;;
     esac
     shift
 done
 # The recipe: the small preset on 64 scenes x 16 paths on a 12000-step schedule (about 45
-# minutes a seed on 2 cores), evaluated with the paper's probe.
+# minutes a seed on 2 cores), evaluated on 64 held-out scenes (the probe trains on 48 and is
+# tested on 16) with the paper's probe.
 RECIPE=(--preset small --scenes 64 --paths 16 --stage1-steps 12000 --checkpoint-every 2000
-    --probe-steps 10000 --probe-width 256)
+    --evaluation-scenes 64 --probe-steps 10000 --probe-width 256)
 if [ "$BUILD" = 1 ]; then
     cargo build --release -p coordinator -p worker -p evaluation --bins
 fi
@@ -67,7 +70,7 @@ PY
         sed "s/^/seed=$seed /" "$run.curve"
     fi
 done
-printf '%s\n' "${LINES[@]}" | awk -v need="$SPREADS" -v flags="${RECIPE[*]} $*" '
+printf '%s\n' "${LINES[@]}" | awk -v need="$SPREADS" -v check="$CHECK" -v flags="${RECIPE[*]} $*" '
     function value(key,    i, kv) { for (i = 1; i <= NF; i++) { split($i, kv, "="); if (kv[1] == key) return kv[2] } }
     { n++; tps[n] = value("stage1_tps_auc30"); lead = value("lead_in_spreads") + 0
       worst = (n == 1 || lead < worst) ? lead : worst; sum += tps[n] }
@@ -76,5 +79,5 @@ printf '%s\n' "${LINES[@]}" | awk -v need="$SPREADS" -v flags="${RECIPE[*]} $*" 
         for (i = 1; i <= n; i++) var += (tps[i] - mean) ^ 2
         sd = n > 1 ? sqrt(var / (n - 1)) : 0
         printf "bench=transfer_recipe_summary seeds=%d flags=\"%s\" stage1_tps_auc30_mean=%.3f stage1_tps_auc30_sd_over_seeds=%.3f worst_lead_in_spreads=%.2f needed=%s met=%s\n", n, flags, mean, sd, worst, need, (worst >= need ? "yes" : "no")
-        exit !(worst >= need)
+        exit check && !(worst >= need)
     }'

@@ -133,6 +133,7 @@ fn help_lists_every_flag_with_its_default() {
         job.seed.to_string(),
         job.stage1_peak_lr.to_string(),
     );
+    let evaluation_scenes = job.evaluation.scenes.to_string();
     let (probe_steps, probe_width) = (
         job.evaluation.probe_steps.to_string(),
         job.evaluation.probe_width.to_string(),
@@ -150,6 +151,9 @@ fn help_lists_every_flag_with_its_default() {
             ("--paths", Some(&paths)),
             ("--seed", Some(&seed)),
             ("--stage1-peak-lr", Some(&peak_lr)),
+            ("--variant", Some("transfer")),
+            ("--pose-dim", None),
+            ("--evaluation-scenes", Some(&evaluation_scenes)),
             ("--probe-steps", Some(&probe_steps)),
             ("--probe-width", Some(&probe_width)),
             ("--image-size", Some(&image_size)),
@@ -166,6 +170,34 @@ fn help_lists_every_flag_with_its_default() {
             ("--log-format", Some("human")),
         ],
     );
+}
+
+#[test]
+fn table_3_flags_write_the_variant_latent_and_evaluation_into_the_yaml() {
+    let dir = tempfile::tempdir().unwrap();
+    let output = Command::new(LOCAL)
+        .arg("--dir")
+        .arg(dir.path())
+        .args(["--prepare-only", "--variant", "extra_view_encoder_decoder"])
+        .args(["--pose-dim", "4", "--evaluation-scenes", "64"])
+        .output()
+        .unwrap();
+    assert!(
+        output.status.success(),
+        "{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    let yaml = std::fs::read_to_string(dir.path().join("cluster.yaml")).unwrap();
+    let config: serde_json::Value = serde_norway::from_str(&yaml).unwrap();
+    assert_eq!(config["model"]["pose_dim"], 4, "{yaml}");
+    assert_eq!(
+        config["stage1"]["objective"]["variant"],
+        "extra_view_encoder_decoder"
+    );
+    // A stage-1-only variant leaves stage 2 to XFactor's objective.
+    assert!(config["stage2"]["objective"]["variant"].is_null(), "{yaml}");
+    assert_eq!(config["evaluate"]["scenes"], 64);
+    assert_eq!(config["evaluate"]["probe"]["test_scenes"], 16);
 }
 
 #[test]
@@ -193,6 +225,9 @@ fn bad_values_are_refused_naming_the_flag() {
     help::assert_refused(LOCAL, &["--scenes", "0"], "--scenes");
     help::assert_refused(LOCAL, &["--stage1-peak-lr", "0"], "--stage1-peak-lr");
     help::assert_refused(LOCAL, &["--device", "tpu"], "--device");
+    help::assert_refused(LOCAL, &["--variant", "bottleneck"], "--variant");
+    help::assert_refused(LOCAL, &["--pose-dim", "0"], "--pose-dim");
+    help::assert_refused(LOCAL, &["--evaluation-scenes", "3"], "--evaluation-scenes");
 }
 
 #[test]

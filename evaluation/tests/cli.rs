@@ -45,6 +45,7 @@ fn help_lists_every_flag_with_its_default() {
         &[
             ("--label", None),
             ("--threshold", Some("20")),
+            ("--stage", None),
             ("--out", None),
         ],
     );

@@ -18,6 +18,7 @@ use coordinator::progress;
 use proto::v1::StatusRequest;
 use proto::v1::coordinator_client::CoordinatorClient;
 use settings::DeviceChoice;
+use settings::objective::ObjectiveVariant;
 use settings::work::WireFormat;
 use telemetry::logging::LogArgs;
 
@@ -45,6 +46,11 @@ fn positive_rate(text: &str) -> Result<f64, NotARate> {
         Ok(rate) if rate.is_finite() && rate > 0.0 => Ok(rate),
         _ => Err(NotARate(text.to_string())),
     }
+}
+
+/// `transfer`, `autoencode`, ...: an objective variant as the YAML's `objective.variant` reads it.
+fn objective_variant(name: &str) -> Result<ObjectiveVariant, serde_norway::Error> {
+    serde_norway::from_str(name)
 }
 
 /// Checks a `--preset` against the cluster YAML's `model.preset` names.
@@ -92,6 +98,19 @@ struct Cli {
     /// Peak learning rate of stage 1's warm-up and cosine schedule
     #[arg(long, value_name = "LR", default_value_t = defaults().stage1_peak_lr, value_parser = positive_rate)]
     stage1_peak_lr: f64,
+    /// Objective of both stages, as the YAML's `objective.variant` (the paper's Table 3):
+    /// transfer (XFactor's), autoencode, se3_plucker, extra_view_decoder or
+    /// extra_view_encoder_decoder (the last two in stage 1 only)
+    #[arg(long, value_name = "VARIANT", default_value = "transfer", value_parser = objective_variant)]
+    variant: ObjectiveVariant,
+    /// Pose-latent size instead of the preset's (Table 3's "bottleneck": autoencode through a
+    /// smaller one)
+    #[arg(long, value_name = "N", value_parser = clap::value_parser!(u64).range(1..))]
+    pose_dim: Option<u64>,
+    /// Held-out scenes the evaluation generates; the last quarter test the pose probe, the rest
+    /// train it (the transfer recipe's: 64)
+    #[arg(long, value_name = "N", default_value_t = defaults().evaluation.scenes, value_parser = clap::value_parser!(u64).range(4..))]
+    evaluation_scenes: u64,
     /// Steps of the evaluation's pose probe (the paper's: 10000; the first run's: 1000)
     #[arg(long, value_name = "N", default_value_t = defaults().evaluation.probe_steps as u64, value_parser = clap::value_parser!(u64).range(1..))]
     probe_steps: u64,
@@ -151,6 +170,10 @@ fn size_run(job: &mut LocalJob, cli: &Cli) -> anyhow::Result<()> {
     job.trajectories = cli.paths;
     job.seed = cli.seed;
     job.stage1_peak_lr = cli.stage1_peak_lr;
+    job.objective_variant = (cli.variant != ObjectiveVariant::Transfer).then_some(cli.variant);
+    job.pose_dim = cli.pose_dim.map(usize::try_from).transpose()?;
+    job.evaluation.scenes = cli.evaluation_scenes;
+    job.evaluation.probe_test_scenes = cli.evaluation_scenes / 4;
     job.evaluation.probe_steps = usize::try_from(cli.probe_steps)?;
     job.evaluation.probe_width = usize::try_from(cli.probe_width)?;
     Ok(())

@@ -84,6 +84,10 @@ struct CompareArgs {
     /// Threshold in degrees of the Rac, Tac and AUC columns (3, 5, 10, 15, 20 or 30)
     #[arg(long, value_name = "DEGREES", default_value_t = 20)]
     threshold: u32,
+    /// The checkpoint compared, by its place in each report (1: the first scored, xfactor-local's
+    /// stage 1; the paper's Table 3 compares stage 1); by default each report's last
+    #[arg(long, value_name = "N", value_parser = clap::value_parser!(u64).range(1..))]
+    stage: Option<u64>,
     /// Folder compare.md and compare.png are written to (created if needed)
     #[arg(long, value_name = "DIR")]
     out: PathBuf,
@@ -240,7 +244,8 @@ fn curve(args: CurveArgs) -> anyhow::Result<()> {
 
 fn compare(args: CompareArgs) -> anyhow::Result<()> {
     evaluation::compare::check_threshold(args.threshold)?;
-    let runs = evaluation::compare::read_runs(&args.runs, &args.labels)?;
+    let stage = args.stage.map(usize::try_from).transpose()?;
+    let runs = evaluation::compare::read_runs(&args.runs, &args.labels, stage)?;
     let table = evaluation::compare::write_comparison(&runs, args.threshold, &args.out)?;
     print!("{table}");
     Ok(())
