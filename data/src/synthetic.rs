@@ -119,6 +119,40 @@ impl SyntheticDataset {
         }
     }
 
+    /// Every sequence's path rendered in its scene at `subdivisions` evenly spaced poses per
+    /// gap between consecutive frames (the frames themselves among them), with those poses:
+    /// the candidates that let the ground-truth oracle read the pose of an image that lies
+    /// between two generated frames. Scenes and paths are drawn again from the dataset's seed
+    /// and split; `config` must be the one the dataset was generated with.
+    pub fn views_between_frames(
+        &self,
+        subdivisions: usize,
+        config: &SceneConfig,
+    ) -> Vec<(Image, CameraPose)> {
+        let first = first_index(self.split);
+        let subdivisions = subdivisions.max(1);
+        let mut views = Vec::new();
+        let mut scene: Option<(u64, Scene)> = None;
+        for sequence in &self.sequences {
+            if scene
+                .as_ref()
+                .is_none_or(|(index, _)| *index != sequence.scene)
+            {
+                let drawn = Scene::random(self.seed, first + sequence.scene, config);
+                scene = Some((sequence.scene, drawn));
+            }
+            let Some((_, drawn)) = &scene else { continue };
+            let path = Trajectory::random_between_frames(
+                self.seed,
+                first + sequence.trajectory,
+                sequence.poses.len(),
+                subdivisions,
+            );
+            views.extend(drawn.render_trajectory(&path).into_iter().zip(path.poses));
+        }
+        views
+    }
+
     /// The stored name of `sequence`: its scene's [`scene_name`], then `_t` and its path's draw
     /// index.
     pub fn sequence_name(&self, sequence: &SyntheticSequence) -> String {
@@ -312,6 +346,39 @@ impl BatchSource for SyntheticDataset {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn views_between_frames_hold_the_frames_and_the_poses_between_them() {
+        let config = SceneConfig {
+            image_size: 8,
+            ..SceneConfig::default()
+        };
+        let dataset = SyntheticDataset::generate_split(5, Split::Test, 2, 2, 4, &config);
+        let same = dataset.views_between_frames(1, &config);
+        let frames: Vec<(&Image, &CameraPose)> = dataset
+            .sequences
+            .iter()
+            .flat_map(|s| s.frames.iter().zip(&s.poses))
+            .collect();
+        assert_eq!(same.len(), frames.len());
+        for ((image, pose), (frame, truth)) in same.iter().zip(&frames) {
+            assert_eq!(image, *frame);
+            assert_eq!(pose, *truth);
+        }
+        // Three views per gap: 3 * 3 + 1 per sequence, every third one a generated frame.
+        let fine = dataset.views_between_frames(3, &config);
+        assert_eq!(fine.len(), 4 * 10);
+        let close = |a: &CameraPose, b: &CameraPose| {
+            (0..3).all(|k| (a.translation[k] - b.translation[k]).abs() < 1e-9)
+        };
+        let sequence = &dataset.sequences[3];
+        let views = &fine[30..40];
+        for (frame, truth) in sequence.poses.iter().enumerate() {
+            assert!(close(&views[3 * frame].1, truth), "frame {frame}");
+        }
+        // The views between two frames are new poses.
+        assert!(!close(&views[1].1, &sequence.poses[0]) && !close(&views[1].1, &sequence.poses[1]));
+    }
 
     #[test]
     fn pairs_stay_within_their_sequence_and_gap() {

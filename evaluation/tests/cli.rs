@@ -34,6 +34,7 @@ fn help_lists_every_flag_with_its_default() {
             ("--spec", None),
             ("--oracle", None),
             ("--oracle-command", None),
+            ("--oracle-subdivisions", None),
             ("--lpips", None),
             ("--backend", Some("cpu")),
             ("--log-format", Some("human")),

@@ -119,7 +119,7 @@ fn evaluation_spec() -> EvaluationSpec {
             width: 64,
             ..ProbeSpec::default()
         },
-        oracle: OracleSpec::GroundTruth,
+        oracle: OracleSpec::default(),
         ..EvaluationSpec::default()
     }
 }

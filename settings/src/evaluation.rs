@@ -106,6 +106,12 @@ impl EvaluationSpec {
             (self.probe.batch == 0, "probe.batch", "at least 1"),
             (self.probe.width == 0, "probe.width", "at least 1"),
             (
+                matches!(self.oracle, OracleSpec::GroundTruth { subdivisions }
+                    if subdivisions == 0 || subdivisions > MAX_ORACLE_SUBDIVISIONS),
+                "oracle.subdivisions",
+                "1 to 16",
+            ),
+            (
                 self.probe.test_scenes == 0 || self.probe.test_scenes >= self.scenes,
                 "probe.test_scenes",
                 "at least 1 and fewer than `scenes` (the rest train the probe)",
@@ -139,7 +145,7 @@ impl Default for EvaluationSpec {
             tps_frames: 5,
             reconstruction_sequences: 8,
             probe: ProbeSpec::default(),
-            oracle: OracleSpec::GroundTruth,
+            oracle: OracleSpec::default(),
             lpips_weights: None,
             compare_untrained: true,
             sequences: Vec::new(),
@@ -225,12 +231,18 @@ impl Default for ProbeSpec {
 }
 
 /// Which oracle an evaluation uses, in serialisable form so it can travel in a job spec.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, Default)]
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case", tag = "kind")]
 pub enum OracleSpec {
     /// Render-and-compare against the generated frames of known pose.
-    #[default]
-    GroundTruth,
+    GroundTruth {
+        /// Candidate views per gap between consecutive generated frames: 1 compares with the
+        /// generated frames alone, so a render between two frames snaps to one of them; `k`
+        /// also renders every path at `k - 1` poses in between, so such a render reads the
+        /// motion it has to a `k`-th of a frame.
+        #[serde(default = "one_subdivision")]
+        subdivisions: u32,
+    },
     /// Feature matching and essential matrices at the generated scenes' field of view.
     Classical,
     /// Any program that reads frame paths and prints poses as JSON.
@@ -243,9 +255,46 @@ pub enum OracleSpec {
     },
 }
 
+impl Default for OracleSpec {
+    /// The ground-truth oracle on the generated frames alone.
+    fn default() -> Self {
+        Self::GroundTruth {
+            subdivisions: one_subdivision(),
+        }
+    }
+}
+
+/// The ground-truth oracle's default: the generated frames alone.
+fn one_subdivision() -> u32 {
+    1
+}
+
+/// The most candidate views per gap an evaluation may ask for (the candidates are rendered and
+/// searched for every render scored).
+pub const MAX_ORACLE_SUBDIVISIONS: u32 = 16;
+
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn oracle_subdivisions_out_of_range_are_refused_by_key() {
+        for (subdivisions, valid) in [(0, false), (1, true), (16, true), (17, false)] {
+            let spec = EvaluationSpec {
+                oracle: OracleSpec::GroundTruth { subdivisions },
+                ..EvaluationSpec::default()
+            };
+            match spec.validate() {
+                Ok(()) => assert!(valid, "{subdivisions} accepted"),
+                Err(error) => {
+                    assert!(!valid, "{subdivisions} refused: {error}");
+                    assert!(error.to_string().contains("oracle.subdivisions"), "{error}");
+                }
+            }
+        }
+        let old: OracleSpec = serde_json::from_str(r#"{"kind": "ground_truth"}"#).unwrap();
+        assert_eq!(old, OracleSpec::default());
+    }
 
     #[test]
     fn the_probe_budget_names_width_steps_batch_and_protocol() {

@@ -236,6 +236,18 @@ impl Trajectory {
     /// centres stay in the fixed camera region that every [`Scene`] keeps clear, so one
     /// trajectory can be rendered in any scene. The random draws do not depend on `frames`.
     pub fn random(seed: u64, index: u64, frames: usize) -> Self {
+        Self::random_between_frames(seed, index, frames, 1)
+    }
+
+    /// The path [`Trajectory::random`] draws for `(seed, index, frames)`, sampled at
+    /// `subdivisions` evenly spaced poses per gap between its frames: every `subdivisions`-th
+    /// pose is one of its frames, the others lie between them on the same motion.
+    pub fn random_between_frames(
+        seed: u64,
+        index: u64,
+        frames: usize,
+        subdivisions: usize,
+    ) -> Self {
         let mut stream = Stream::new(&[seed, index, TRAJECTORY_TAG]);
         let direction = normalized([stream.normal(), 0.3 * stream.normal(), stream.normal()])
             .unwrap_or([1.0, 0.0, 0.0]);
@@ -265,10 +277,16 @@ impl Trajectory {
         let pitch_turn = (stream.uniform_in(-0.01, 0.01) * spans).clamp(-0.2, 0.2);
         let roll_turn = (stream.uniform_in(-0.004, 0.004) * spans).clamp(-0.06, 0.06);
 
-        let poses = (0..frames)
-            .map(|frame| {
-                let u = if spans > 0.0 {
-                    frame as f64 / spans
+        let subdivisions = subdivisions.max(1);
+        let samples = match frames {
+            0 => 0,
+            _ => (frames - 1) * subdivisions + 1,
+        };
+        let sample_spans = spans * subdivisions as f64;
+        let poses = (0..samples)
+            .map(|sample| {
+                let u = if sample_spans > 0.0 {
+                    sample as f64 / sample_spans
                 } else {
                     0.0
                 };

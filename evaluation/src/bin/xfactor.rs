@@ -174,6 +174,10 @@ struct EvaluateArgs {
     /// External pose-oracle program instead of the spec's
     #[arg(long, value_name = "PROGRAM", conflicts_with = "oracle")]
     oracle_command: Option<String>,
+    /// The ground-truth oracle's candidate views per gap between generated frames (1: the
+    /// frames alone; 4: a render between two frames reads its pose to a quarter of a frame)
+    #[arg(long, value_name = "N", conflicts_with = "oracle_command", value_parser = clap::value_parser!(u32).range(1..=16))]
+    oracle_subdivisions: Option<u32>,
     /// LPIPS weights (safetensors) instead of the spec's
     #[arg(long, value_name = "WEIGHTS")]
     lpips: Option<PathBuf>,
@@ -275,7 +279,7 @@ fn evaluate(args: EvaluateArgs) -> anyhow::Result<()> {
     args.log.init()?;
     let mut spec = read_spec(args.spec.as_deref())?;
     match (args.oracle, args.oracle_command) {
-        (Some(Oracle::GroundTruth), _) => spec.oracle = OracleSpec::GroundTruth,
+        (Some(Oracle::GroundTruth), _) => spec.oracle = OracleSpec::default(),
         (Some(Oracle::Classical), _) => spec.oracle = OracleSpec::Classical,
         (None, Some(program)) => {
             spec.oracle = OracleSpec::External {
@@ -284,6 +288,14 @@ fn evaluate(args: EvaluateArgs) -> anyhow::Result<()> {
             }
         }
         (None, None) => {}
+    }
+    if let Some(subdivisions) = args.oracle_subdivisions {
+        match &mut spec.oracle {
+            OracleSpec::GroundTruth { subdivisions: slot } => *slot = subdivisions,
+            other => anyhow::bail!(
+                "--oracle-subdivisions refines the ground-truth oracle; this evaluation's is {other:?}"
+            ),
+        }
     }
     if let Some(lpips) = args.lpips {
         spec.lpips_weights = Some(lpips);

@@ -151,7 +151,17 @@ fn oracle_for(
     scene: &SceneConfig,
 ) -> Box<dyn PoseOracle> {
     match spec {
-        OracleSpec::GroundTruth => Box::new(GroundTruthOracle::from_dataset(dataset)),
+        OracleSpec::GroundTruth { subdivisions: 1 } => {
+            Box::new(GroundTruthOracle::from_dataset(dataset))
+        }
+        OracleSpec::GroundTruth { subdivisions } => {
+            let _span = tracing::info_span!("oracle_views", subdivisions).entered();
+            Box::new(GroundTruthOracle::between_frames(
+                dataset,
+                *subdivisions as usize,
+                scene,
+            ))
+        }
         OracleSpec::Classical => Box::new(ClassicalOracle::new(ClassicalSettings {
             fov_degrees: scene.fov_degrees,
             ..ClassicalSettings::default()

@@ -7,7 +7,7 @@
 //! renderer of the scene produced.
 
 use data::Image;
-use data::scenes::CameraPose;
+use data::scenes::{CameraPose, SceneConfig};
 use data::synthetic::SyntheticDataset;
 
 use super::{OracleError, PoseOracle};
@@ -69,6 +69,18 @@ impl GroundTruthOracle {
         )
     }
 
+    /// An oracle knowing every path of a generated dataset at `subdivisions` views per gap
+    /// between its frames ([`SyntheticDataset::views_between_frames`]; `config` is the one the
+    /// dataset was generated with): a render between two frames reads its pose to a
+    /// `subdivisions`-th of a frame instead of snapping to one of them.
+    pub fn between_frames(
+        dataset: &SyntheticDataset,
+        subdivisions: usize,
+        config: &SceneConfig,
+    ) -> Self {
+        Self::new(dataset.views_between_frames(subdivisions, config))
+    }
+
     fn nearest(&self, frame: &Image) -> Option<CameraPose> {
         let frame = &thumbnail(frame);
         self.candidates
@@ -112,7 +124,7 @@ impl PoseOracle for GroundTruthOracle {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use data::scenes::SceneConfig;
+    use data::scenes::{Scene, Trajectory};
 
     #[test]
     fn generated_frames_get_their_exact_poses() {
@@ -131,5 +143,36 @@ mod tests {
         };
         assert_eq!(thumbnail(&sequence.frames[0]).pixels.len(), 8 * 8 * 3);
         assert!(oracle.estimate(&[small]).is_err());
+    }
+
+    #[test]
+    fn a_view_between_two_frames_reads_its_own_pose_with_views_between_frames() {
+        let config = SceneConfig {
+            image_size: 16,
+            ..SceneConfig::default()
+        };
+        let dataset = SyntheticDataset::generate_split(3, data::Split::Test, 2, 2, 4, &config);
+        // The second path in the first scene at half-frame spacing: view 3 lies halfway
+        // between frames 1 and 2.
+        let first = data::synthetic::HELD_OUT_FIRST_INDEX;
+        let halfway = Trajectory::random_between_frames(3, first + 1, 4, 2).poses[3];
+        let image = Scene::random(3, first, &config).render(&halfway);
+        let coarse =
+            GroundTruthOracle::from_dataset(&dataset).estimate(std::slice::from_ref(&image));
+        let fine = GroundTruthOracle::between_frames(&dataset, 2, &config)
+            .estimate(std::slice::from_ref(&image));
+        let sequence = &dataset.sequences[1];
+        let coarse = coarse.unwrap()[0];
+        assert!(
+            coarse == sequence.poses[1] || coarse == sequence.poses[2],
+            "the frames alone snap it to a neighbour"
+        );
+        assert_eq!(fine.unwrap()[0], halfway);
+        // The generated frames keep their exact poses.
+        let oracle = GroundTruthOracle::between_frames(&dataset, 2, &config);
+        let read = oracle.estimate(&sequence.frames).unwrap();
+        for (read, truth) in read.iter().zip(&sequence.poses) {
+            assert!((0..3).all(|k| (read.translation[k] - truth.translation[k]).abs() < 1e-9));
+        }
     }
 }

@@ -457,8 +457,10 @@ impl TryFrom<&v1::DataSettings> for DataSpec {
 impl From<&EvaluationSpec> for v1::EvaluationSettings {
     fn from(e: &EvaluationSpec) -> Self {
         let oracle = match &e.oracle {
-            OracleSpec::GroundTruth => {
-                v1::evaluation_settings::Oracle::GroundTruth(v1::GroundTruthOracle {})
+            OracleSpec::GroundTruth { subdivisions } => {
+                v1::evaluation_settings::Oracle::GroundTruth(v1::GroundTruthOracle {
+                    subdivisions: *subdivisions,
+                })
             }
             OracleSpec::Classical => {
                 v1::evaluation_settings::Oracle::Classical(v1::ClassicalOracle {})
@@ -517,7 +519,9 @@ impl TryFrom<&v1::EvaluationSettings> for EvaluationSpec {
     fn try_from(e: &v1::EvaluationSettings) -> Result<Self, ConvertError> {
         let probe = required(e.probe.as_ref(), "evaluate.probe")?;
         let oracle = match required(e.oracle.as_ref(), "evaluate.oracle")? {
-            v1::evaluation_settings::Oracle::GroundTruth(_) => OracleSpec::GroundTruth,
+            v1::evaluation_settings::Oracle::GroundTruth(x) => OracleSpec::GroundTruth {
+                subdivisions: x.subdivisions.max(1),
+            },
             v1::evaluation_settings::Oracle::Classical(_) => OracleSpec::Classical,
             v1::evaluation_settings::Oracle::External(x) => OracleSpec::External {
                 program: x.program.clone(),

@@ -129,6 +129,21 @@ fn evaluation_settings_phases_and_devices_survive_the_wire() {
     };
     let back = EvaluationSpec::try_from(&v1::EvaluationSettings::from(&evaluation)).unwrap();
     assert_eq!(back, evaluation);
+    let finer = EvaluationSpec {
+        oracle: OracleSpec::GroundTruth { subdivisions: 4 },
+        ..evaluation
+    };
+    let back = EvaluationSpec::try_from(&v1::EvaluationSettings::from(&finer)).unwrap();
+    assert_eq!(back, finer);
+    // A sender that predates the field leaves it 0: the frames alone.
+    let mut old = v1::EvaluationSettings::from(&finer);
+    old.oracle = Some(v1::evaluation_settings::Oracle::GroundTruth(
+        v1::GroundTruthOracle::default(),
+    ));
+    assert_eq!(
+        EvaluationSpec::try_from(&old).unwrap().oracle,
+        OracleSpec::default()
+    );
     for phase in [
         Phase::Stage1,
         Phase::Stage2,
