@@ -298,7 +298,13 @@ pub fn run_evaluation(
 fn departures(spec: &EvaluationSpec) -> Vec<String> {
     let mut notes = vec![
         "generated held-out scenes (test split), not a dataset's test split".to_string(),
-        format!("oracle {:?}", spec.oracle),
+        match spec.oracle {
+            OracleSpec::GroundTruth { subdivisions: 1 } => "oracle GroundTruth".to_string(),
+            OracleSpec::GroundTruth { subdivisions } => format!(
+                "oracle GroundTruth, {subdivisions} views per gap between generated frames"
+            ),
+            ref other => format!("oracle {other:?}"),
+        },
     ];
     if spec.probe.rotation_from_identity {
         notes.push(
