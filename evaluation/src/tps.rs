@@ -191,40 +191,52 @@ pub struct TpsReport {
     pub unrelated_trajectory: CameraMetrics,
 }
 
-/// How a TPS run is drawn: the frames of each transfer, the context views of B, and the seed of
-/// the spreads.
+/// How TPS is scored: the seed of the spreads (the frames and context views are the
+/// [`PairFrames`]' own).
 #[derive(Debug, Clone, Copy)]
 pub struct TpsSettings {
-    /// Equally spaced target frames per transfer.
-    pub frames_per_pair: usize,
-    /// Context views of B per transfer.
-    pub context_views: usize,
     /// Seed of the bootstrap spreads.
     pub seed: u64,
 }
 
-/// Runs TPS: `render(frames)` must return one render of `frames.contexts` along each of
-/// `frames.source`'s frames (it also sees the ideal transfer, for figures).
-pub fn transferability(
+/// The frames of every pair in `pairs`, `frames_per_pair` equally spaced targets each, with
+/// `context_views` context views of B: everything TPS shows a renderer and scores against,
+/// gathered before any model runs.
+pub fn transfer_frames(
     dataset: &SyntheticDataset,
     pairs: &[TpsPair],
+    frames_per_pair: usize,
+    context_views: usize,
+) -> Result<Vec<PairFrames>, EvalError> {
+    let frames = dataset.sequences.first().map_or(0, |s| s.frames.len());
+    let indices = target_frames(frames, frames_per_pair);
+    pairs
+        .iter()
+        .map(|pair| pair_frames(dataset, pair, &indices, context_views))
+        .collect()
+}
+
+/// Scores TPS: `renders[k]` holds one render of `transfers[k].contexts` along each of
+/// `transfers[k].source`'s frames; the oracle reads the source, the renders and both
+/// calibrations of every transfer.
+pub fn score_transfers(
+    transfers: &[PairFrames],
+    renders: &[Vec<Image>],
     settings: TpsSettings,
     oracle: &dyn PoseOracle,
-    mut render: impl FnMut(&PairFrames) -> Result<Vec<Image>, EvalError>,
-) -> Result<TpsReport, EvalError> {
-    let frames = dataset.sequences.first().map_or(0, |s| s.frames.len());
-    let indices = target_frames(frames, settings.frames_per_pair);
+) -> TpsReport {
+    let frames_per_pair = transfers.first().map_or(0, |t| t.source.len());
+    let context_views = transfers.first().map_or(0, |t| t.contexts.len());
     let (mut model, mut ideal, mut unrelated) =
         (Scored::default(), Scored::default(), Scored::default());
     let (mut skipped, mut failures, mut copied_transfers, mut copied_renders, mut renders_seen) =
         (0, 0, 0, 0, 0);
-    let pair_count = indices.len() * indices.len().saturating_sub(1) / 2;
-    for pair in pairs {
-        let frames = pair_frames(dataset, pair, &indices, settings.context_views)?;
+    let pair_count = frames_per_pair * frames_per_pair.saturating_sub(1) / 2;
+    for (index, (frames, renders)) in transfers.iter().zip(renders).enumerate() {
         let reference = match oracle.estimate(&frames.source) {
             Ok(poses) => poses,
             Err(error) => {
-                tracing::warn!(?pair, %error, "oracle cannot read the source; pair skipped");
+                tracing::warn!(pair = index, %error, "oracle cannot read the source; pair skipped");
                 skipped += 1;
                 continue;
             }
@@ -237,37 +249,36 @@ pub fn transferability(
                     true
                 }
                 Err(error) => {
-                    tracing::debug!(?pair, %error, "oracle cannot read a transfer");
+                    tracing::debug!(pair = index, %error, "oracle cannot read a transfer");
                     into.groups.push(vec![FAILED; pair_count]);
                     false
                 }
             }
         };
-        let renders = render(&frames)?;
-        let copies = copies_of_source(&renders, &frames);
+        let copies = copies_of_source(renders, frames);
         (copied_renders, renders_seen) = (copied_renders + copies, renders_seen + renders.len());
         if 2 * copies > renders.len() {
             copied_transfers += 1;
             model.groups.push(vec![FAILED; pair_count]);
         } else {
-            failures += usize::from(!score(&renders, &mut model));
+            failures += usize::from(!score(renders, &mut model));
         }
         score(&frames.ideal, &mut ideal);
         score(&frames.unrelated, &mut unrelated);
     }
-    Ok(TpsReport {
+    TpsReport {
         oracle: oracle.name().to_string(),
-        pairs: pairs.len(),
-        frames_per_pair: indices.len(),
+        pairs: transfers.len(),
+        frames_per_pair,
         skipped,
         failures,
-        context_views: settings.context_views,
+        context_views,
         copied_transfers,
         copy_share: copied_renders as f64 / renders_seen.max(1) as f64,
         model: model.metrics(settings.seed),
         ideal_transfer: ideal.metrics(settings.seed),
         unrelated_trajectory: unrelated.metrics(settings.seed),
-    })
+    }
 }
 
 /// Pair errors of every scored transfer, one group each (failures as the worst error), and the
@@ -311,27 +322,26 @@ mod tests {
         );
         assert_eq!(target_frames(9, 5), vec![0, 2, 4, 6, 8]);
         // A "renderer" that returns the ideal transfer: B's own frames along A's motion.
-        let settings = TpsSettings {
-            frames_per_pair: 5,
-            context_views: 1,
-            seed: 0,
-        };
-        let report = transferability(&dataset, &pairs, settings, &oracle, |frames| {
-            let (source, contexts) = (&frames.source, &frames.contexts);
-            let pose_source = oracle.estimate(source)?;
-            Ok(dataset
-                .sequences
-                .iter()
-                .find(|s| s.poses[0] == pose_source[0] && s.frames[0] == contexts[0])
-                .map(|s| {
-                    [0, 2, 4, 6, 8]
-                        .iter()
-                        .map(|&i| s.frames[i].clone())
-                        .collect()
-                })
-                .unwrap_or_default())
-        })
-        .unwrap();
+        let transfers = transfer_frames(&dataset, &pairs, 5, 1).unwrap();
+        let renders: Vec<Vec<Image>> = transfers
+            .iter()
+            .map(|frames| {
+                let (source, contexts) = (&frames.source, &frames.contexts);
+                let pose_source = oracle.estimate(source).unwrap();
+                dataset
+                    .sequences
+                    .iter()
+                    .find(|s| s.poses[0] == pose_source[0] && s.frames[0] == contexts[0])
+                    .map(|s| {
+                        [0, 2, 4, 6, 8]
+                            .iter()
+                            .map(|&i| s.frames[i].clone())
+                            .collect()
+                    })
+                    .unwrap_or_default()
+            })
+            .collect();
+        let report = score_transfers(&transfers, &renders, TpsSettings { seed: 0 }, &oracle);
         assert_eq!(report.model.pairs, 6 * 10);
         let perfect = report.ideal_transfer.at(3).unwrap();
         assert_eq!(
@@ -350,16 +360,10 @@ mod tests {
     #[test]
     fn a_renderer_that_returns_the_source_video_scores_no_transfer() {
         let (dataset, oracle, pairs) = three_scenes();
-        let settings = TpsSettings {
-            frames_per_pair: 5,
-            context_views: 2,
-            seed: 0,
-        };
-        let report = transferability(&dataset, &pairs, settings, &oracle, |frames| {
-            assert_eq!(frames.contexts.len(), 2);
-            Ok(frames.source.to_vec())
-        })
-        .unwrap();
+        let transfers = transfer_frames(&dataset, &pairs, 5, 2).unwrap();
+        assert!(transfers.iter().all(|frames| frames.contexts.len() == 2));
+        let renders: Vec<Vec<Image>> = transfers.iter().map(|f| f.source.clone()).collect();
+        let report = score_transfers(&transfers, &renders, TpsSettings { seed: 0 }, &oracle);
         assert_eq!(report.copied_transfers, 6);
         assert_eq!(report.copy_share, 1.0);
         for scores in &report.model.thresholds {

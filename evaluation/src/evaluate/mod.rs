@@ -10,30 +10,23 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use burn::tensor::Device;
-use data::Split;
-use data::scenes::SceneConfig;
-use data::synthetic::SyntheticDataset;
 use serde::{Deserialize, Serialize};
-use trainer_core::lpips::Lpips;
+use settings::evaluation::{EvaluationSpec, OracleSpec};
 use trainer_core::{XFactor, XFactorConfig, checkpoint};
 
 use crate::error::{EvalError, io_error};
 use crate::metrics::{CameraMetrics, ReconstructionReport};
-use crate::oracle::{
-    ClassicalOracle, ClassicalSettings, ExternalOracle, GroundTruthOracle, PoseOracle,
-};
 use crate::probe::ProbeReport;
-use crate::sequences::{ProtocolSet, SequenceReport, load_protocol};
+use crate::sequences::SequenceReport;
 use crate::tps::TpsReport;
-use measurements::{
-    Figures, baselines, evaluate_probe, evaluate_tps, generated_reconstruction,
-    sequence_reconstructions,
-};
-use settings::evaluation::{EvaluationSpec, OracleSpec};
+use gather::{Gathered, gather};
+use write::FigureSet;
 
+mod gather;
+mod infer;
 mod markdown;
-mod measurements;
-mod reconstruction;
+mod score;
+mod write;
 
 pub use markdown::markdown;
 
@@ -145,102 +138,60 @@ impl EvaluationReport {
     }
 }
 
-fn oracle_for(
-    spec: &OracleSpec,
-    dataset: &SyntheticDataset,
-    scene: &SceneConfig,
-) -> Box<dyn PoseOracle> {
-    match spec {
-        OracleSpec::GroundTruth { subdivisions: 1 } => {
-            Box::new(GroundTruthOracle::from_dataset(dataset))
-        }
-        OracleSpec::GroundTruth { subdivisions } => {
-            let _span = tracing::info_span!("oracle_views", subdivisions).entered();
-            Box::new(GroundTruthOracle::between_frames(
-                dataset,
-                *subdivisions as usize,
-                scene,
-            ))
-        }
-        OracleSpec::Classical => Box::new(ClassicalOracle::new(ClassicalSettings {
-            fov_degrees: scene.fov_degrees,
-            ..ClassicalSettings::default()
-        })),
-        OracleSpec::External { program, args } => Box::new(ExternalOracle::new(program, args)),
-    }
+/// A checkpoint's models: its weights, and an untrained twin of its configuration when the
+/// spec asks for one.
+struct Models {
+    trained: XFactor,
+    untrained: Option<XFactor>,
+    config: XFactorConfig,
 }
 
-/// Everything shared by the checkpoints and models of one evaluation.
-struct Context<'a> {
-    spec: &'a EvaluationSpec,
-    dataset: SyntheticDataset,
-    protocol_sets: Vec<ProtocolSet>,
-    oracle: Box<dyn PoseOracle>,
-    lpips: Option<Lpips>,
-    device: Device,
-    out_dir: &'a Path,
-}
-
-/// Scores one model with `context_views` context views, writing its figures with `prefix`.
-fn evaluate_model(
-    model: &XFactor,
-    context_views: usize,
-    context: &Context<'_>,
-    prefix: &str,
-    figures: &mut Vec<String>,
-) -> Result<ModelReport, EvalError> {
-    let mut figures = Figures {
-        out_dir: context.out_dir,
-        names: figures,
+/// Loads `under_test` (and its untrained twin) onto `device`.
+fn load_models(
+    under_test: &CheckpointUnderTest,
+    spec: &EvaluationSpec,
+    device: &Device,
+) -> Result<Models, EvalError> {
+    // Before the weights are loaded: on a device without the half type, loading would panic.
+    let stored = checkpoint::read_config(&under_test.weights)?;
+    trainer_core::trainer::check_device_arithmetic(&stored, device)
+        .map_err(|e| EvalError::Invalid(format!("{}: {e}", under_test.weights.display())))?;
+    let (trained, config) = checkpoint::load(&under_test.weights, device)?;
+    let untrained = match spec.compare_untrained {
+        true => Some(
+            XFactor::new(&config, spec.seed, device)
+                .map_err(|e| EvalError::Invalid(e.to_string()))?,
+        ),
+        false => None,
     };
-    let reconstruction =
-        generated_reconstruction(model, context_views, context, prefix, &mut figures)?;
-    let sequences = sequence_reconstructions(model, context, prefix, &mut figures)?;
-    let tps = evaluate_tps(model, context_views, context, prefix, &mut figures)?;
-    let probe = evaluate_probe(model, context, prefix, &mut figures)?;
-    Ok(ModelReport {
-        reconstruction,
-        tps,
-        probe,
-        sequences,
+    Ok(Models {
+        trained,
+        untrained,
+        config,
     })
 }
 
-/// Scores one checkpoint, its untrained twin when the spec asks, and the baselines.
-fn evaluate_checkpoint(
-    under_test: &CheckpointUnderTest,
-    context: &Context<'_>,
-    figures: &mut Vec<String>,
-) -> Result<(StageReport, XFactorConfig), EvalError> {
-    let _span = tracing::info_span!("checkpoint", label = %under_test.label).entered();
-    // Before the weights are loaded: on a device without the half type, loading would panic.
-    let stored = checkpoint::read_config(&under_test.weights)?;
-    trainer_core::trainer::check_device_arithmetic(&stored, &context.device)
-        .map_err(|e| EvalError::Invalid(format!("{}: {e}", under_test.weights.display())))?;
-    let (model, config) = checkpoint::load(&under_test.weights, &context.device)?;
-    let views = under_test.context_views.max(1);
-    let label = &under_test.label;
-    let trained = evaluate_model(&model, views, context, &format!("{label}_trained"), figures)?;
-    let untrained = if context.spec.compare_untrained {
-        let fresh = XFactor::new(&config, context.spec.seed, &context.device)
-            .map_err(|e| EvalError::Invalid(e.to_string()))?;
-        let prefix = format!("{label}_untrained");
-        Some(evaluate_model(&fresh, views, context, &prefix, figures)?)
-    } else {
-        None
-    };
-    let report = StageReport {
-        checkpoint: under_test.clone(),
-        trained,
-        untrained,
-        baselines: baselines(views, context)?,
-    };
-    Ok((report, config))
+/// Runs one model on everything gathered and scores it, keeping what its figures draw.
+fn run_and_score(
+    model: &XFactor,
+    views: usize,
+    gathered: &Gathered<'_>,
+    prefix: String,
+    figures: &mut Vec<FigureSet>,
+) -> Result<ModelReport, EvalError> {
+    let _span = tracing::info_span!("model", name = %prefix).entered();
+    let outputs = infer::run_model(model, views, gathered)?;
+    let scored = score::score_model(&outputs, views, gathered)?;
+    let paths = (scored.transfer_paths, scored.probe_paths);
+    figures.push(FigureSet::new(prefix, views, &outputs, paths, gathered)?);
+    Ok(scored.report)
 }
 
 /// Scores every checkpoint of `checkpoints` (each with its `.json` configuration beside it; all
 /// of one image size) on `device` and writes `report.json`, `report.md` and the figures into
-/// `out_dir` (created if needed).
+/// `out_dir` (created if needed). One pass: gather the frames every model is shown and scored
+/// on ([`gather`]); for each checkpoint, run its models and the pose-free baselines
+/// ([`infer`]) and score them ([`score`]); then write the figures and the report ([`write`]).
 pub fn run_evaluation(
     spec: &EvaluationSpec,
     checkpoints: &[CheckpointUnderTest],
@@ -255,25 +206,49 @@ pub fn run_evaluation(
         .ok_or_else(|| EvalError::Invalid("no checkpoint to evaluate".to_string()))?;
     std::fs::create_dir_all(out_dir).map_err(|e| io_error(out_dir, e))?;
     let config = checkpoint::read_config(&first.weights)?;
-    let context = build_context(spec, &config, device, out_dir)?;
+    let views: Vec<usize> = checkpoints.iter().map(|c| c.context_views.max(1)).collect();
+    let gathered = gather(spec, &config, &views, device)?;
     let mut figures = Vec::new();
     let mut stages = Vec::with_capacity(checkpoints.len());
-    let mut model = config;
-    for under_test in checkpoints {
-        let (stage, config) = evaluate_checkpoint(under_test, &context, &mut figures)?;
-        if config.image_size != model.image_size {
+    for (under_test, &views) in checkpoints.iter().zip(&views) {
+        let _span = tracing::info_span!("checkpoint", label = %under_test.label).entered();
+        let models = load_models(under_test, spec, device)?;
+        if models.config.image_size != config.image_size {
             return Err(EvalError::Invalid(format!(
                 "{} is a {}-pixel model, {} a {}-pixel one: one evaluation scores one image size",
                 under_test.weights.display(),
-                config.image_size,
+                models.config.image_size,
                 first.weights.display(),
-                model.image_size
+                config.image_size
             )));
         }
-        stages.push(stage);
-        model = config;
+        let label = &under_test.label;
+        let trained = run_and_score(
+            &models.trained,
+            views,
+            &gathered,
+            format!("{label}_trained"),
+            &mut figures,
+        )?;
+        let untrained = match &models.untrained {
+            Some(model) => Some(run_and_score(
+                model,
+                views,
+                &gathered,
+                format!("{label}_untrained"),
+                &mut figures,
+            )?),
+            None => None,
+        };
+        let baselines = infer::run_baselines(views, &gathered)?;
+        stages.push(StageReport {
+            checkpoint: under_test.clone(),
+            trained,
+            untrained,
+            baselines: score::score_baselines(&baselines, views, &gathered)?,
+        });
     }
-    let report = EvaluationReport {
+    let mut report = EvaluationReport {
         spec: spec.clone(),
         scenes: EvaluationScenes {
             split: "test".to_string(),
@@ -282,13 +257,13 @@ pub fn run_evaluation(
             frames: spec.frames,
             seed: spec.seed,
         },
-        model,
+        model: config,
         stages,
         departures: departures(spec),
-        figures,
+        figures: Vec::new(),
         seconds: started.elapsed().as_secs_f64(),
     };
-    write_report(&report, out_dir)?;
+    write::write(&mut report, &figures, out_dir)?;
     tracing::info!(seconds = report.seconds, dir = %out_dir.display(), "evaluation written");
     Ok(report)
 }
@@ -300,9 +275,9 @@ fn departures(spec: &EvaluationSpec) -> Vec<String> {
         "generated held-out scenes (test split), not a dataset's test split".to_string(),
         match spec.oracle {
             OracleSpec::GroundTruth { subdivisions: 1 } => "oracle GroundTruth".to_string(),
-            OracleSpec::GroundTruth { subdivisions } => format!(
-                "oracle GroundTruth, {subdivisions} views per gap between generated frames"
-            ),
+            OracleSpec::GroundTruth { subdivisions } => {
+                format!("oracle GroundTruth, {subdivisions} views per gap between generated frames")
+            }
             ref other => format!("oracle {other:?}"),
         },
     ];
@@ -323,70 +298,6 @@ fn departures(spec: &EvaluationSpec) -> Vec<String> {
     }
     notes.extend(spec.notes.iter().cloned());
     notes
-}
-
-/// Generates the held-out scenes and loads the real sequences, pose oracle and LPIPS every
-/// checkpoint shares.
-fn build_context<'a>(
-    spec: &'a EvaluationSpec,
-    config: &XFactorConfig,
-    device: &Device,
-    out_dir: &'a Path,
-) -> Result<Context<'a>, EvalError> {
-    let scene_config = SceneConfig {
-        image_size: config.image_size,
-        ..SceneConfig::default()
-    };
-    let dataset = {
-        let _span = tracing::info_span!(
-            "generate",
-            scenes = spec.scenes,
-            trajectories = spec.trajectories
-        )
-        .entered();
-        SyntheticDataset::generate_split(
-            spec.seed,
-            Split::Test,
-            spec.scenes,
-            spec.trajectories,
-            spec.frames,
-            &scene_config,
-        )
-    };
-    let protocol_sets = spec
-        .sequences
-        .iter()
-        .map(|protocol| {
-            let _span = tracing::info_span!("load_sequences", dataset = ?protocol.kind).entered();
-            load_protocol(protocol, config.image_size)
-        })
-        .collect::<Result<Vec<_>, _>>()?;
-    let lpips =
-        match &spec.lpips_weights {
-            Some(path) => Some(Lpips::from_file(path, device).map_err(|e| {
-                EvalError::Invalid(format!("LPIPS weights {}: {e}", path.display()))
-            })?),
-            None => None,
-        };
-    Ok(Context {
-        spec,
-        oracle: oracle_for(&spec.oracle, &dataset, &scene_config),
-        dataset,
-        protocol_sets,
-        lpips,
-        device: device.clone(),
-        out_dir,
-    })
-}
-
-/// Writes `report` into `out_dir` as `report.json` and `report.md`.
-fn write_report(report: &EvaluationReport, out_dir: &Path) -> Result<(), EvalError> {
-    let json_path = out_dir.join("report.json");
-    let json = serde_json::to_string_pretty(report).map_err(|e| io_error(&json_path, e))?;
-    std::fs::write(&json_path, json).map_err(|e| io_error(&json_path, e))?;
-    let md_path = out_dir.join("report.md");
-    std::fs::write(&md_path, markdown(report)).map_err(|e| io_error(&md_path, e))?;
-    Ok(())
 }
 
 /// The spec in `path` (JSON), or the default when `path` is `None`.
