@@ -9,7 +9,6 @@
 
 pub mod bars;
 pub mod curves;
-mod exposition;
 pub mod histogram;
 pub mod http;
 pub mod logging;

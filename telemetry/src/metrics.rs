@@ -1,13 +1,14 @@
-//! A small Prometheus registry: gauges, counters and histograms with labels, rendered in the
-//! text exposition format (version 0.0.4). Hand-written because the processes export a few dozen
-//! series and a client library would add a dependency tree for no gain.
+//! Prometheus series through the `prometheus` crate: gauges, counters and histograms with
+//! labels, declared as constants by the processes that export them, and exposed in Prometheus'
+//! text format (0.0.4), which every Prometheus scrapes and `promtool check metrics` lints. Not
+//! the `prometheus-client` crate: it writes only OpenMetrics text, whose counters (a family
+//! `x` with samples `x_total`) Debian's promtool 2.42 reads as series without help.
 
 use std::collections::BTreeMap;
-use std::fmt::Write;
 use std::sync::{Mutex, PoisonError};
 
-use crate::exposition::format_value;
-use crate::histogram::Histogram;
+use prometheus::core::Collector;
+use prometheus::{CounterVec, GaugeVec, HistogramOpts, HistogramVec, Opts, TextEncoder};
 
 /// Whether a series can go down (gauge), only up (counter), or counts observations into
 /// buckets (histogram).
@@ -64,160 +65,228 @@ impl Metric {
     }
 }
 
-/// One labelled series: a gauge's or counter's value, or a histogram's buckets.
+/// One family's labelled series, of its kind.
 enum Series {
-    Value(f64),
-    Histogram(Histogram),
+    Gauge(GaugeVec),
+    Counter(CounterVec),
+    Histogram(HistogramVec),
 }
 
+/// A registered family and the label names its series carry (fixed by its first update).
 struct Family {
-    metric: Metric,
-    series: BTreeMap<String, Series>,
+    series: Series,
+    labels: Vec<String>,
+}
+
+impl Family {
+    /// A family of `metric` with series labelled `labels`.
+    fn new(metric: &Metric, labels: Vec<String>) -> prometheus::Result<Self> {
+        let names: Vec<&str> = labels.iter().map(String::as_str).collect();
+        let opts = Opts::new(metric.name, metric.help);
+        let series = match metric.kind {
+            Kind::Gauge => Series::Gauge(GaugeVec::new(opts, &names)?),
+            Kind::Counter => Series::Counter(CounterVec::new(opts, &names)?),
+            Kind::Histogram(bounds) => Series::Histogram(HistogramVec::new(
+                HistogramOpts::from(opts).buckets(bounds.to_vec()),
+                &names,
+            )?),
+        };
+        Ok(Self { series, labels })
+    }
+
+    fn collector(&self) -> Box<dyn Collector> {
+        match &self.series {
+            Series::Gauge(vec) => Box::new(vec.clone()),
+            Series::Counter(vec) => Box::new(vec.clone()),
+            Series::Histogram(vec) => Box::new(vec.clone()),
+        }
+    }
 }
 
 /// The current value of every series a process exports. Cheap to update from any thread.
-#[derive(Default)]
 pub struct Registry {
+    registry: prometheus::Registry,
     families: Mutex<BTreeMap<&'static str, Family>>,
+}
+
+impl Default for Registry {
+    fn default() -> Self {
+        Self::new()
+    }
 }
 
 impl Registry {
     /// An empty registry.
     pub fn new() -> Self {
-        Self::default()
+        Self {
+            registry: prometheus::Registry::new(),
+            families: Mutex::new(BTreeMap::new()),
+        }
     }
 
-    fn series<R>(
+    /// Applies `apply` to the series of `metric` labelled `labels`, registering the family on
+    /// its first update. An update whose label names differ from the family's first is dropped
+    /// with a warning: series names and labels are the exporter's contract.
+    fn with_series(
         &self,
         metric: &Metric,
         labels: &[(&str, &str)],
-        apply: impl FnOnce(&mut Series) -> R,
-    ) -> R {
+        apply: impl FnOnce(&Series, &[&str]),
+    ) {
         let mut families = self.families.lock().unwrap_or_else(PoisonError::into_inner);
-        let family = families.entry(metric.name).or_insert_with(|| Family {
-            metric: *metric,
-            series: BTreeMap::new(),
-        });
-        let series = family
-            .series
-            .entry(render_labels(labels))
-            .or_insert_with(|| match metric.kind {
-                Kind::Histogram(bounds) => Series::Histogram(Histogram::new(bounds)),
-                Kind::Gauge | Kind::Counter => Series::Value(0.0),
+        let names: Vec<String> = labels.iter().map(|(key, _)| (*key).to_string()).collect();
+        if !families.contains_key(metric.name) {
+            let registered = Family::new(metric, names.clone()).and_then(|family| {
+                self.registry.register(family.collector())?;
+                Ok(family)
             });
-        apply(series)
+            match registered {
+                Ok(family) => {
+                    families.insert(metric.name, family);
+                }
+                Err(error) => {
+                    tracing::warn!(metric = metric.name, %error, "series not exported");
+                    return;
+                }
+            }
+        }
+        let Some(family) = families.get(metric.name) else {
+            return;
+        };
+        if family.labels != names {
+            tracing::warn!(metric = metric.name, labels = ?names, expected = ?family.labels, "update with other labels dropped");
+            return;
+        }
+        let values: Vec<&str> = labels.iter().map(|(_, value)| *value).collect();
+        apply(&family.series, &values);
     }
 
-    /// Applies `apply` to a gauge's or counter's value; a histogram is left alone (a caller
-    /// mixing up kinds must not corrupt it).
-    fn update(&self, metric: &Metric, labels: &[(&str, &str)], apply: impl FnOnce(&mut f64)) {
-        self.series(metric, labels, |series| {
-            if let Series::Value(value) = series {
-                apply(value);
+    /// Counts `value` (seconds, for the duration histograms) into a histogram's buckets; a
+    /// gauge or counter is left alone, and NaN is not counted (it would make the sum NaN
+    /// forever).
+    pub fn observe(&self, metric: &Metric, labels: &[(&str, &str)], value: f64) {
+        if value.is_nan() {
+            return;
+        }
+        self.with_series(metric, labels, |series, values| {
+            if let Series::Histogram(vec) = series {
+                vec.with_label_values(values).observe(value);
             }
         });
     }
 
-    /// Counts `value` (seconds, for the duration histograms) into a histogram's buckets; a
-    /// gauge or counter is left alone.
-    pub fn observe(&self, metric: &Metric, labels: &[(&str, &str)], value: f64) {
-        if let Kind::Histogram(bounds) = metric.kind {
-            self.series(metric, labels, |series| {
-                if let Series::Histogram(histogram) = series {
-                    histogram.observe(bounds, value);
-                }
-            });
-        }
-    }
-
-    /// Sets a gauge.
+    /// Sets a gauge (a counter is set to `value` where that does not lower it).
     pub fn set(&self, metric: &Metric, labels: &[(&str, &str)], value: f64) {
-        self.update(metric, labels, |slot| *slot = value);
+        self.with_series(metric, labels, |series, values| match series {
+            Series::Gauge(vec) => vec.with_label_values(values).set(value),
+            Series::Counter(vec) => raise(&vec.with_label_values(values), value),
+            Series::Histogram(_) => {}
+        });
     }
 
-    /// Adds `delta` (non-negative) to a counter.
+    /// Adds `delta` (non-negative) to a counter or gauge.
     pub fn add(&self, metric: &Metric, labels: &[(&str, &str)], delta: f64) {
-        self.update(metric, labels, |slot| *slot += delta.max(0.0));
+        let delta = delta.max(0.0);
+        self.with_series(metric, labels, |series, values| match series {
+            Series::Gauge(vec) => vec.with_label_values(values).add(delta),
+            Series::Counter(vec) => vec.with_label_values(values).inc_by(delta),
+            Series::Histogram(_) => {}
+        });
     }
 
     /// Raises a counter to `total` when a peer reports a running total (never lowers it, so
     /// a restarted peer does not make the counter go backwards).
     pub fn raise_to(&self, metric: &Metric, labels: &[(&str, &str)], total: f64) {
-        self.update(metric, labels, |slot| *slot = slot.max(total));
+        self.with_series(metric, labels, |series, values| match series {
+            Series::Counter(vec) => raise(&vec.with_label_values(values), total),
+            Series::Gauge(vec) => {
+                let gauge = vec.with_label_values(values);
+                gauge.set(gauge.get().max(total));
+            }
+            Series::Histogram(_) => {}
+        });
     }
 
     /// A series' current value, if it was ever set (for tests of what was recorded).
     #[cfg(test)]
     fn value(&self, metric: &Metric, labels: &[(&str, &str)]) -> Option<f64> {
+        let values: Vec<&str> = labels.iter().map(|(_, value)| *value).collect();
         let families = self.families.lock().unwrap_or_else(PoisonError::into_inner);
-        families.get(metric.name).and_then(|family| {
-            match family.series.get(&render_labels(labels)) {
-                Some(Series::Value(value)) => Some(*value),
-                _ => None,
-            }
-        })
+        let family = families.get(metric.name)?;
+        let exists = family_label_values(family)
+            .iter()
+            .any(|series| series.iter().map(String::as_str).eq(values.iter().copied()));
+        match (&family.series, exists) {
+            (Series::Gauge(vec), true) => Some(vec.with_label_values(&values).get()),
+            (Series::Counter(vec), true) => Some(vec.with_label_values(&values).get()),
+            _ => None,
+        }
     }
 
     /// Drops the series of `metric` whose `label` value fails `keep`: a process that labels
     /// series by peer removes the peers that are gone, so stale values do not linger.
     pub fn retain(&self, metric: &Metric, label: &str, keep: impl Fn(&str) -> bool) {
-        let mut families = self.families.lock().unwrap_or_else(PoisonError::into_inner);
-        if let Some(family) = families.get_mut(metric.name) {
-            let prefix = format!("{label}=\"");
-            family.series.retain(|labels, _| {
-                labels
-                    .split(&prefix)
-                    .nth(1)
-                    .and_then(|rest| rest.split('"').next())
-                    .is_none_or(&keep)
-            });
+        let families = self.families.lock().unwrap_or_else(PoisonError::into_inner);
+        let Some(family) = families.get(metric.name) else {
+            return;
+        };
+        let Some(position) = family.labels.iter().position(|name| name == label) else {
+            return;
+        };
+        for values in family_label_values(family) {
+            if keep(&values[position]) {
+                continue;
+            }
+            let removed = match &family.series {
+                Series::Gauge(vec) => vec.remove_label_values(&values),
+                Series::Counter(vec) => vec.remove_label_values(&values),
+                Series::Histogram(vec) => vec.remove_label_values(&values),
+            };
+            if let Err(error) = removed {
+                tracing::debug!(metric = metric.name, %error, "series already gone");
+            }
         }
     }
 
-    /// Every series in the Prometheus text exposition format.
+    /// Every series in the Prometheus text exposition format (0.0.4).
     pub fn render(&self) -> String {
-        let families = self.families.lock().unwrap_or_else(PoisonError::into_inner);
         let mut text = String::new();
-        for family in families.values() {
-            let name = family.metric.name;
-            let kind = match family.metric.kind {
-                Kind::Gauge => "gauge",
-                Kind::Counter => "counter",
-                Kind::Histogram(_) => "histogram",
-            };
-            let _ = writeln!(text, "# HELP {name} {}", family.metric.help);
-            let _ = writeln!(text, "# TYPE {name} {kind}");
-            for (labels, series) in &family.series {
-                match (series, family.metric.kind) {
-                    (Series::Value(value), _) => {
-                        let _ = writeln!(text, "{name}{labels} {}", format_value(*value));
-                    }
-                    (Series::Histogram(histogram), Kind::Histogram(bounds)) => {
-                        histogram.render(&mut text, name, labels, bounds);
-                    }
-                    (Series::Histogram(_), _) => {}
-                }
-            }
+        if let Err(error) = TextEncoder::new().encode_utf8(&self.registry.gather(), &mut text) {
+            tracing::warn!(%error, "metrics not encoded");
         }
         text
     }
 }
 
-fn render_labels(labels: &[(&str, &str)]) -> String {
-    if labels.is_empty() {
-        return String::new();
+/// Raises `counter` to `total` (never lowers it).
+fn raise(counter: &prometheus::Counter, total: f64) {
+    let current = counter.get();
+    if total > current {
+        counter.inc_by(total - current);
     }
-    let pairs: Vec<String> = labels
+}
+
+/// The label values of every series of `family`, in the family's label order.
+fn family_label_values(family: &Family) -> Vec<Vec<String>> {
+    family
+        .collector()
+        .collect()
         .iter()
-        .map(|(key, value)| {
-            let escaped = value
-                .replace('\\', "\\\\")
-                .replace('"', "\\\"")
-                .replace('\n', "\\n");
-            format!("{key}=\"{escaped}\"")
+        .flat_map(|collected| collected.get_metric())
+        .map(|series| {
+            let pairs = series.get_label();
+            family
+                .labels
+                .iter()
+                .map(|name| {
+                    pairs
+                        .iter()
+                        .find(|pair| pair.name() == name)
+                        .map_or_else(String::new, |pair| pair.value().to_string())
+                })
+                .collect()
         })
-        .collect();
-    format!("{{{}}}", pairs.join(","))
+        .collect()
 }
 
 #[cfg(test)]
@@ -259,15 +328,24 @@ mod tests {
         for worker in ["1", "2", "3"] {
             registry.set(&STEP, &[("worker", worker)], 1.0);
         }
-        registry.set(&STEP, &[], 5.0);
         registry.retain(&STEP, "worker", |w| w != "2");
         let text = registry.render();
         assert!(!text.contains("worker=\"2\""), "{text}");
         assert!(
-            text.contains("worker=\"1\"") && text.contains("worker=\"3\""),
+            text.contains("xfactor_step{worker=\"1\"} 1\n") && text.contains("worker=\"3\""),
             "{text}"
         );
-        assert!(text.contains("xfactor_step 5\n"), "{text}");
+    }
+
+    #[test]
+    fn an_update_with_other_label_names_is_dropped() {
+        let registry = Registry::new();
+        registry.set(&STEP, &[("worker", "1")], 1.0);
+        registry.set(&STEP, &[], 5.0);
+        registry.set(&STEP, &[("rank", "0")], 6.0);
+        let text = registry.render();
+        assert!(text.contains("xfactor_step{worker=\"1\"} 1\n"), "{text}");
+        assert!(!text.contains(" 5\n") && !text.contains(" 6\n"), "{text}");
     }
 
     #[test]
