@@ -94,6 +94,11 @@ async fn run(args: &RunArgs) -> anyhow::Result<()> {
     tokio::spawn(suspend_on_usr1(suspender.clone()));
     let config = ClusterConfig::from_file(&args.config)?;
     let token = config.auth.resolve()?;
+    let viewing = config
+        .viewing
+        .as_ref()
+        .map(|viewing| viewing.0.resolve())
+        .transpose()?;
     let plan = Plan::build(config).await?;
     if args.dry_run {
         print!("{}", plan.describe());
@@ -111,7 +116,7 @@ async fn run(args: &RunArgs) -> anyhow::Result<()> {
             &address,
             service.metrics(),
             telemetry::http::always_healthy(),
-            service.status_page(&token)?,
+            service.status_page(&token, viewing.as_deref())?,
         )
         .await?;
     }

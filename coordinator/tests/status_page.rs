@@ -94,6 +94,7 @@ fn the_status_page_shows_the_job_to_its_token_and_a_killed_worker_as_a_fault() {
     job.checkpoint_every = 20;
     let port = free_port().unwrap();
     job.coordinator_metrics_port = Some(port);
+    job.viewing_token = Some("viewer-of-this-job".into());
     let mut running = Running::start(job);
 
     let training = wait_for(&running, port, "training on two workers", |s| {
@@ -135,6 +136,17 @@ fn the_status_page_shows_the_job_to_its_token_and_a_killed_worker_as_a_fault() {
     let cookie = cookie.split(';').next().unwrap().to_string();
     let page = ask(port, "GET", "/", &[("Cookie", &cookie)], "");
     assert_eq!(page.status, 200);
+    // So does the YAML's read-only viewing token, as a bearer and at the sign-in form.
+    let viewer = [("Authorization", "Bearer viewer-of-this-job")];
+    assert_eq!(ask(port, "GET", "/api/status", &viewer, "").status, 200);
+    let viewer_login = ask(
+        port,
+        "POST",
+        "/login",
+        &[("Content-Type", "application/x-www-form-urlencoded")],
+        "token=viewer-of-this-job",
+    );
+    assert_eq!(viewer_login.status, 303, "{viewer_login:?}");
     for worker in &training.workers {
         assert!(page.body.contains(&worker.name), "{}", page.body);
     }

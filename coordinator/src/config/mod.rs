@@ -91,6 +91,11 @@ pub struct ClusterConfig {
     /// `--metrics-address` wins). Absent: no endpoint.
     #[serde(default)]
     pub metrics_listen: Option<NonEmpty>,
+    /// A read-only token for the status page on the metrics port (`viewing: {token_env: X}`
+    /// or `viewing: {token: ...}`): it shows the job, and cannot join or steer it. The job
+    /// token opens the page too. Absent: only the job token.
+    #[serde(default)]
+    pub viewing: Option<ViewingToken>,
     /// Frames the whole job may skip (corrupt, missing or unreadable objects, summed over
     /// workers and generations) before it stops with a message naming the dataset and
     /// examples: a few bad frames in millions are noise, thousands mean the data is broken.
@@ -148,6 +153,10 @@ impl AuthConfig {
         }
     }
 }
+
+/// The status page's read-only token, given as the job token is (`token` or `token_env`).
+#[derive(Debug, Clone, PartialEq, Deserialize, Serialize)]
+pub struct ViewingToken(#[serde(with = "serde_norway::with::singleton_map")] pub AuthConfig);
 
 /// `auth.token_env` names a variable that is not set.
 #[derive(Debug, Clone, PartialEq, Eq, thiserror::Error)]

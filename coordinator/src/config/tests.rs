@@ -174,6 +174,22 @@ fn a_token_variable_that_is_not_set_is_named() {
 }
 
 #[test]
+fn a_viewing_token_is_read_as_the_job_token_is() {
+    let plain = ClusterConfig::from_yaml(GOOD, "cluster.yaml").unwrap();
+    assert_eq!(plain.viewing, None);
+    let inline = format!("{GOOD}viewing:\n  token: look-only\n");
+    let config = ClusterConfig::from_yaml(&inline, "cluster.yaml").unwrap();
+    let viewing = config.viewing.expect("a viewing token");
+    assert_eq!(viewing.0.resolve().unwrap(), "look-only");
+    let from_env = format!("{GOOD}viewing:\n  token_env: XFACTOR_TEST_VIEW_TOKEN_NOT_SET\n");
+    let config = ClusterConfig::from_yaml(&from_env, "cluster.yaml").unwrap();
+    let error = config.viewing.unwrap().0.resolve().unwrap_err().to_string();
+    assert!(error.contains("XFACTOR_TEST_VIEW_TOKEN_NOT_SET"), "{error}");
+    let unknown = error_of(&format!("{GOOD}viewing:\n  password: x\n"));
+    assert!(unknown.contains("viewing"), "{unknown}");
+}
+
+#[test]
 fn durations_and_counts_out_of_bounds_are_refused_with_key_and_line() {
     let huge = error_of(&format!("{GOOD}workers:\n  heartbeat_timeout_s: 1e20\n"));
     assert!(huge.contains("workers.heartbeat_timeout_s"), "{huge}");

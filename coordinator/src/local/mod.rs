@@ -69,6 +69,9 @@ pub struct LocalJob {
     pub pose_dim: Option<usize>,
     /// Port of the coordinator's `/metrics` endpoint; `None`: no endpoint.
     pub coordinator_metrics_port: Option<u16>,
+    /// A read-only token for the status page (`viewing:` in the YAML); `None`: only the job
+    /// token opens it.
+    pub viewing_token: Option<String>,
     /// Ports of the workers' `/metrics` endpoints, by worker index; missing: no endpoint.
     pub worker_metrics_ports: Vec<u16>,
     /// More `xfactor-worker` arguments, by worker index (fault drills, say).
@@ -126,6 +129,7 @@ impl LocalJob {
             objective_variant: None,
             pose_dim: None,
             coordinator_metrics_port: None,
+            viewing_token: None,
             worker_metrics_ports: Vec::new(),
             worker_args: Vec::new(),
             data_uri: None,
@@ -281,6 +285,9 @@ impl LocalJob {
         let _ = writeln!(yaml, "seed: {}", self.seed);
         let _ = writeln!(yaml, "listen: {}:{}", self.listen_host, self.port);
         let _ = writeln!(yaml, "auth:\n  token: {}", self.token());
+        if let Some(viewing) = &self.viewing_token {
+            let _ = writeln!(yaml, "viewing:\n  token: {viewing}");
+        }
         let _ = writeln!(
             yaml,
             "model:\n  preset: {}\n  image_size: {}",

@@ -220,12 +220,14 @@ impl CoordinatorService {
         Arc::clone(&self.metrics)
     }
 
-    /// The status page's routes, shown to holders of `token`, for the metrics port.
+    /// The status page's routes, shown to holders of the job's `token` or of the read-only
+    /// `viewing` token, for the metrics port.
     pub fn status_page(
         &self,
         token: &str,
+        viewing: Option<&str>,
     ) -> Result<axum::Router, crate::status::routes::NoSession> {
-        crate::status::routes::routes(Arc::clone(&self.state), token)
+        crate::status::routes::routes(Arc::clone(&self.state), token, viewing)
     }
 
     fn publish(&self, state: &JobState) {

@@ -20,11 +20,12 @@ use crate::job::JobState;
 /// The session cookie's name.
 const COOKIE: &str = "xfactor_status";
 
-/// What the routes share: the job, its token and the session value given for it.
+/// What the routes share: the job, the tokens that open the page and the session value given
+/// for them.
 #[derive(Clone)]
 struct Viewing {
     state: Arc<Mutex<JobState>>,
-    token: Arc<str>,
+    tokens: Arc<[String]>,
     session: Arc<str>,
 }
 
@@ -33,14 +34,23 @@ struct Viewing {
 #[error("no random session value for the status page: {0}")]
 pub struct NoSession(String);
 
-/// The status page's routes over the job `state`, shown to holders of `token`.
-pub fn routes(state: Arc<Mutex<JobState>>, token: &str) -> Result<Router, NoSession> {
+/// The status page's routes over the job `state`, shown to holders of the job's `token` or of
+/// the read-only `viewing` token.
+pub fn routes(
+    state: Arc<Mutex<JobState>>,
+    token: &str,
+    viewing: Option<&str>,
+) -> Result<Router, NoSession> {
     let mut random = [0u8; 24];
     getrandom::fill(&mut random).map_err(|e| NoSession(e.to_string()))?;
     let session: String = random.iter().map(|b| format!("{b:02x}")).collect();
+    let tokens: Vec<String> = std::iter::once(token)
+        .chain(viewing)
+        .map(str::to_string)
+        .collect();
     let viewing = Viewing {
         state,
-        token: token.into(),
+        tokens: tokens.into(),
         session: session.into(),
     };
     Ok(Router::new()
@@ -56,7 +66,14 @@ fn same(a: &[u8], b: &[u8]) -> bool {
 }
 
 impl Viewing {
-    /// Whether `headers` carry the session cookie or the token as a bearer.
+    /// Whether `given` is one of the tokens that open the page.
+    fn opens(&self, given: &str) -> bool {
+        self.tokens.iter().fold(false, |found, token| {
+            found | same(given.as_bytes(), token.as_bytes())
+        })
+    }
+
+    /// Whether `headers` carry the session cookie or a token as a bearer.
     fn admits(&self, headers: &HeaderMap) -> bool {
         let cookie = headers
             .get_all(header::COOKIE)
@@ -69,7 +86,7 @@ impl Viewing {
             .get(header::AUTHORIZATION)
             .and_then(|value| value.to_str().ok())
             .and_then(|value| value.strip_prefix("Bearer "))
-            .is_some_and(|token| same(token.trim().as_bytes(), self.token.as_bytes()));
+            .is_some_and(|token| self.opens(token.trim()));
         cookie || bearer
     }
 
@@ -91,7 +108,7 @@ struct Login {
 }
 
 async fn login(State(viewing): State<Viewing>, Form(form): Form<Login>) -> Response {
-    if !same(form.token.as_bytes(), viewing.token.as_bytes()) {
+    if !viewing.opens(&form.token) {
         tracing::warn!("status page: a wrong token was entered");
         let page = page::login(Some("That is not this job's token."));
         return (StatusCode::UNAUTHORIZED, Html(page)).into_response();
