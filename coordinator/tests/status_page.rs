@@ -85,6 +85,20 @@ fn status_command_reads_the_page(port: u16, token: &str) {
     assert!(String::from_utf8_lossy(&refused.stderr).contains("401"));
 }
 
+/// The YAML's read-only viewing token opens the page too, as a bearer and at the sign-in form.
+fn the_viewing_token_opens_the_page(port: u16) {
+    let viewer = [("Authorization", "Bearer viewer-of-this-job")];
+    assert_eq!(ask(port, "GET", "/api/status", &viewer, "").status, 200);
+    let viewer_login = ask(
+        port,
+        "POST",
+        "/login",
+        &[("Content-Type", "application/x-www-form-urlencoded")],
+        "token=viewer-of-this-job",
+    );
+    assert_eq!(viewer_login.status, 303, "{viewer_login:?}");
+}
+
 #[test]
 fn the_status_page_shows_the_job_to_its_token_and_a_killed_worker_as_a_fault() {
     let dir = tempfile::tempdir().unwrap();
@@ -136,17 +150,7 @@ fn the_status_page_shows_the_job_to_its_token_and_a_killed_worker_as_a_fault() {
     let cookie = cookie.split(';').next().unwrap().to_string();
     let page = ask(port, "GET", "/", &[("Cookie", &cookie)], "");
     assert_eq!(page.status, 200);
-    // So does the YAML's read-only viewing token, as a bearer and at the sign-in form.
-    let viewer = [("Authorization", "Bearer viewer-of-this-job")];
-    assert_eq!(ask(port, "GET", "/api/status", &viewer, "").status, 200);
-    let viewer_login = ask(
-        port,
-        "POST",
-        "/login",
-        &[("Content-Type", "application/x-www-form-urlencoded")],
-        "token=viewer-of-this-job",
-    );
-    assert_eq!(viewer_login.status, 303, "{viewer_login:?}");
+    the_viewing_token_opens_the_page(port);
     for worker in &training.workers {
         assert!(page.body.contains(&worker.name), "{}", page.body);
     }

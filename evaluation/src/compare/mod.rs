@@ -89,7 +89,7 @@ pub fn read_runs(
         let bytes = std::fs::read(&path).map_err(|e| io_error(&path, e))?;
         let report: EvaluationReport = serde_json::from_slice(&bytes)
             .map_err(|e| io_error(&path, format!("not an evaluation report: {e}")))?;
-        let stage = compared_stage(&report, stage).map_err(|e| io_error(&path, e))?;
+        let stage = compared_stage(&report, stage, &path)?;
         if let Some(first) = runs.first()
             && !evaluated_alike(&first.report.spec, &report.spec)
         {
@@ -113,15 +113,21 @@ pub fn read_runs(
     Ok(runs)
 }
 
-/// The index of the checkpoint `stage` (1-based; `None`: the last) names in `report`.
-fn compared_stage(report: &EvaluationReport, stage: Option<usize>) -> Result<usize, String> {
+/// The index of the checkpoint `stage` (1-based; `None`: the last) names in `report`, read
+/// from `path`.
+fn compared_stage(
+    report: &EvaluationReport,
+    stage: Option<usize>,
+    path: &Path,
+) -> Result<usize, EvalError> {
     let scored = report.stages.len();
     match stage {
-        _ if scored == 0 => Err("the report scores no checkpoint".into()),
+        _ if scored == 0 => Err(io_error(path, "the report scores no checkpoint")),
         None => Ok(scored - 1),
         Some(n) if (1..=scored).contains(&n) => Ok(n - 1),
-        Some(n) => Err(format!(
-            "--stage {n}: the report scores {scored} checkpoint(s)"
+        Some(n) => Err(io_error(
+            path,
+            format!("--stage {n}: the report scores {scored} checkpoint(s)"),
         )),
     }
 }

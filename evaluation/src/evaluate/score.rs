@@ -11,6 +11,7 @@ use super::infer::{BaselineOutputs, ModelOutputs};
 use super::{Baselines, ModelReport};
 use crate::error::EvalError;
 use crate::metrics::{ReconstructionReport, bootstrap_spread, psnr, ssim};
+use crate::oracle::OracleError;
 use crate::probe::{ProbePath, ProbeSequence, no_motion, run_probe};
 use crate::sequences::SequenceReport;
 use crate::tps::{TpsSettings, score_transfers};
@@ -30,7 +31,7 @@ pub(super) struct TransferPaths {
     /// The source video's poses.
     pub(super) source: Vec<CameraPose>,
     /// The renders' poses, or why the oracle could not read them.
-    pub(super) renders: Result<Vec<CameraPose>, String>,
+    pub(super) renders: Result<Vec<CameraPose>, OracleError>,
 }
 
 /// Scores one model's outputs with `views` context views.
@@ -64,7 +65,7 @@ pub(super) fn score_model(
             .zip(outputs.transfers.first())
             .and_then(|(frames, renders)| {
                 let source = gathered.oracle.estimate(&frames.source).ok()?;
-                let renders = gathered.oracle.estimate(renders).map_err(|e| e.to_string());
+                let renders = gathered.oracle.estimate(renders);
                 Some(TransferPaths { source, renders })
             });
     let (probe, probe_paths) = {
