@@ -340,11 +340,12 @@ mod tests {
     use super::*;
     use data::scenes::Trajectory;
 
-    /// Latents that encode the true relative pose exactly: the probe must learn to read them.
-    fn sequences(range: std::ops::Range<u64>) -> Vec<ProbeSequence> {
+    /// Paths of `frames` frames whose latents encode the true relative pose exactly: the probe
+    /// must learn to read them.
+    fn sequences(range: std::ops::Range<u64>, frames: usize) -> Vec<ProbeSequence> {
         range
             .map(|index| {
-                let poses = Trajectory::random(4, index, 5).poses;
+                let poses = Trajectory::random(4, index, frames).poses;
                 let latents = relative_to_reference(&poses, 0)
                     .iter()
                     .map(|p| target(p).to_vec())
@@ -451,20 +452,9 @@ mod tests {
             rotation_from_identity: true,
             ..ProbeSpec::default()
         };
-        let paths = |range: std::ops::Range<u64>| -> Vec<ProbeSequence> {
-            range
-                .map(|index| {
-                    let poses = Trajectory::random(4, index, 8).poses;
-                    let latents = relative_to_reference(&poses, 0)
-                        .iter()
-                        .map(|p| target(p).to_vec())
-                        .collect();
-                    ProbeSequence { latents, poses }
-                })
-                .collect()
-        };
         let device = Device::flex().autodiff();
-        let (report, _) = run_probe(&paths(0..192), &paths(192..256), &spec, 0, &device).unwrap();
+        let (train, test) = (sequences(0..192, 8), sequences(192..256, 8));
+        let (report, _) = run_probe(&train, &test, &spec, 0, &device).unwrap();
         let metrics = &report.metrics;
         assert!(metrics.mean_translation_error < 3.0, "{metrics:?}");
         assert!(
@@ -482,8 +472,8 @@ mod tests {
             ..ProbeSpec::default()
         };
         let (report, paths) = run_probe(
-            &sequences(0..40),
-            &sequences(40..48),
+            &sequences(0..40, 5),
+            &sequences(40..48, 5),
             &spec,
             0,
             &Device::flex().autodiff(),
