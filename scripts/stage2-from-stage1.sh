@@ -1,0 +1,62 @@
+#!/usr/bin/env bash
+# Stage 2 again from a finished local run's stage-1 final commit, with other stage-2 settings
+# (issue 52: does stage 2 keep the transfer?). Copies the run's final stage-1 checkpoint into
+# OUT, writes the job record the coordinator resumes from (stage 2, nothing of it done yet) and
+# the run's cluster YAML with stage 2's steps and peak learning rate changed and no
+# evaluation, then runs a coordinator and two CPU workers on loopback until stage 2 commits.
+# Evaluate the result with `xfactor evaluate --context-views 1|2`.
+#
+#   scripts/stage2-from-stage1.sh RUN_DIR OUT_DIR [--steps 150] [--peak-lr 0.001]
+set -euo pipefail
+cd "$(dirname "$0")/.."
+source scripts/env.sh
+RUN="${1:?usage: stage2-from-stage1.sh RUN_DIR OUT_DIR [--steps N] [--peak-lr LR]}"
+OUT="${2:?usage: stage2-from-stage1.sh RUN_DIR OUT_DIR [--steps N] [--peak-lr LR]}"
+shift 2
+STEPS=150 LR=0.001
+while [ $# -gt 0 ]; do
+    case "$1" in
+        --steps) STEPS="$2"; shift ;;
+        --peak-lr) LR="$2"; shift ;;
+        *) echo "stage2-from-stage1: unknown argument $1" >&2; exit 2 ;;
+    esac
+    shift
+done
+BIN="$CARGO_TARGET_DIR/release"
+FINAL=$(python3 -c 'import json,sys; print(json.load(open(sys.argv[1]))["stage1_final"])' \
+    "$RUN/checkpoints/job.json")
+[ -f "$FINAL/COMMIT.json" ] || { echo "stage2-from-stage1: $FINAL is no committed checkpoint" >&2; exit 1; }
+rm -rf "$OUT"
+mkdir -p "$OUT/checkpoints/stage1"
+cp -r "$FINAL" "$OUT/checkpoints/stage1/"
+OUT=$(cd "$OUT" && pwd)
+STAGE1="$OUT/checkpoints/stage1/$(basename "$FINAL")"
+PORT=$(python3 -c 'import socket; s=socket.socket(); s.bind(("127.0.0.1", 0)); print(s.getsockname()[1])')
+python3 - "$RUN/cluster.yaml" "$OUT" "$LR" "$STEPS" "$PORT" "$STAGE1" <<'PY'
+import json, re, sys
+source, out, lr, steps, port, stage1 = sys.argv[1:]
+yaml = open(source).read()
+yaml = re.sub(r"listen: .*", f"listen: 127.0.0.1:{port}", yaml)
+yaml = re.sub(r"(checkpoint:\n  uri: ).*", lambda m: m.group(1) + out + "/checkpoints", yaml)
+stage2 = re.search(r"stage2:\n(  .*\n)+", yaml).group(0)
+# Word-bounded, so the warm-up's `warmup_steps` keeps its value.
+changed = re.sub(r"\b(curriculum_steps|total_steps|steps): \d+", lambda m: f"{m.group(1)}: {steps}", stage2)
+changed = re.sub(r"peak_lr: [0-9.e-]+", f"peak_lr: {lr}", changed)
+yaml = re.sub(r"\nevaluate:\n(  .*\n)+", "\n", yaml.replace(stage2, changed))
+open(out + "/cluster.yaml", "w").write(yaml)
+record = {"job": "local-demo", "stage": 2, "earlier_commits": [], "stage1_final": stage1,
+          "last_commit": {"stage": 1, "step": int(re.search(r"step-0*(\d+)", stage1).group(1)),
+                          "location": stage1}}
+json.dump(record, open(out + "/checkpoints/job.json", "w"))
+PY
+TOKEN=$(sed -n 's/^  token: //p' "$OUT/cluster.yaml" | head -1)
+"$BIN/xfactor-coordinator" run --config "$OUT/cluster.yaml" >"$OUT/coordinator.log" 2>&1 &
+COORDINATOR=$!
+trap 'kill $COORDINATOR 2>/dev/null; pkill -f "scratch $OUT/scratch" 2>/dev/null || true' EXIT
+sleep 2
+for i in 0 1; do
+    "$BIN/xfactor-worker" --coordinator "http://127.0.0.1:$PORT" --token "$TOKEN" \
+        --name "local-$i" --scratch "$OUT/scratch" >"$OUT/worker-$i.log" 2>&1 &
+done
+wait "$COORDINATOR"
+ls -d "$OUT"/checkpoints/stage2/step-*
