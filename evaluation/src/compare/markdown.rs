@@ -23,7 +23,7 @@ pub fn markdown(runs: &[ComparedRun], threshold: u32) -> String {
         let seeds: Vec<String> = seeds.iter().map(u64::to_string).collect();
         let _ = writeln!(
             text,
-            "Evaluation: generated held-out scenes (seeds {}, {} scenes x {} trajectories each), {} TPS pairs ({} oracle), probe on {} held-out scenes ({}); camera scores in %, at {threshold} degrees; the checkpoint compared: {}.\n",
+            "Evaluation: generated held-out scenes (seeds {}; {} scenes x {} trajectories each), {} TPS pairs ({} oracle), probe on {} held-out scenes ({}); camera scores in %, at {threshold} degrees; the checkpoint compared: {}.\n",
             seeds.join(", "),
             spec.scenes,
             spec.trajectories,
