@@ -27,11 +27,12 @@ while [ $# -gt 0 ]; do
     esac
     shift
 done
-# The recipe: the small preset on 64 scenes x 16 paths on a 12000-step schedule (about 45
-# minutes a seed on 2 cores), evaluated on 64 held-out scenes (the probe trains on 48 and is
-# tested on 16) with the paper's probe.
-RECIPE=(--preset small --scenes 64 --paths 16 --stage1-steps 12000 --checkpoint-every 2000
-    --evaluation-scenes 64 --probe-steps 10000 --probe-width 256)
+# The recipe: the small preset on 64 scenes x 16 paths on a 12000-step schedule, then 2000
+# multi-view stage-2 steps (150 do not teach Render its second view; docs/evaluation.md),
+# about 55 minutes a seed on 2 cores (stage 2 about 9 of them), evaluated on 64 held-out
+# scenes (the probe trains on 48 and is tested on 16) with the paper's probe.
+RECIPE=(--preset small --scenes 64 --paths 16 --stage1-steps 12000 --stage2-steps 2000
+    --checkpoint-every 2000 --evaluation-scenes 64 --probe-steps 10000 --probe-width 256)
 if [ "$BUILD" = 1 ]; then
     cargo build --release -p coordinator -p worker -p evaluation --bins
 fi
