@@ -10,7 +10,7 @@ use burn::tensor::Device;
 use data::Image;
 use data::Split;
 use data::scenes::SceneConfig;
-use data::synthetic::{SyntheticDataset, SyntheticSequence};
+use data::synthetic::SyntheticDataset;
 use settings::evaluation::{EvaluationSpec, OracleSpec};
 use trainer_core::XFactorConfig;
 use trainer_core::lpips::Lpips;
@@ -48,11 +48,12 @@ pub(super) struct Gathered<'a> {
 }
 
 impl Gathered<'_> {
-    /// The generated sequences reconstructed.
-    pub(super) fn reconstructed(&self) -> impl Iterator<Item = &SyntheticSequence> {
+    /// The frames of each generated sequence reconstructed, in gathered order: what the
+    /// models render, the baselines copy, the scores compare against and the sheets show.
+    pub(super) fn reconstructed_frames(&self) -> impl Iterator<Item = &[Image]> {
         self.reconstruction
             .iter()
-            .map(|&index| &self.dataset.sequences[index])
+            .map(|&index| self.dataset.sequences[index].frames.as_slice())
     }
 
     /// The frames of every transfer with `views` context views (gathered for every number of

@@ -40,8 +40,8 @@ pub(super) fn run_model(
     let reconstruction = {
         let _span = tracing::info_span!("reconstruction_renders", views).entered();
         gathered
-            .reconstructed()
-            .map(|sequence| render_sequence(model, &sequence.frames, views, gathered))
+            .reconstructed_frames()
+            .map(|frames| render_sequence(model, frames, views, gathered))
             .collect::<Result<Vec<_>, _>>()?
     };
     let sequences = gathered
@@ -113,10 +113,7 @@ pub(super) fn run_baselines(
     views: usize,
     gathered: &Gathered<'_>,
 ) -> Result<BaselineOutputs, EvalError> {
-    let sequences: Vec<&[Image]> = gathered
-        .reconstructed()
-        .map(|s| s.frames.as_slice())
-        .collect();
+    let sequences: Vec<&[Image]> = gathered.reconstructed_frames().collect();
     let copy = sequences
         .iter()
         .map(|frames| copy_nearest_context(frames, views))

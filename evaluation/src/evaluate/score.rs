@@ -42,7 +42,7 @@ pub(super) fn score_model(
 ) -> Result<Scored, EvalError> {
     let reconstruction = {
         let _span = tracing::info_span!("reconstruction").entered();
-        let frames = gathered.reconstructed().map(|s| s.frames.as_slice());
+        let frames = gathered.reconstructed_frames();
         reconstruction_report(frames, &outputs.reconstruction, views, gathered)?
     };
     let sequences = score_sequences(outputs, gathered)?;
@@ -143,7 +143,7 @@ pub(super) fn score_baselines(
     gathered: &Gathered<'_>,
 ) -> Result<Baselines, EvalError> {
     let _span = tracing::info_span!("baselines", views).entered();
-    let frames = || gathered.reconstructed().map(|s| s.frames.as_slice());
+    let frames = || gathered.reconstructed_frames();
     let settings = TpsSettings {
         seed: gathered.spec.seed,
     };

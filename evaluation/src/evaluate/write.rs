@@ -46,10 +46,7 @@ impl FigureSet {
         (transfer_paths, probe_paths): (Option<TransferPaths>, Vec<ProbePath>),
         gathered: &Gathered<'_>,
     ) -> Result<Self, EvalError> {
-        let frames: Vec<&[Image]> = gathered
-            .reconstructed()
-            .map(|s| s.frames.as_slice())
-            .collect();
+        let frames: Vec<&[Image]> = gathered.reconstructed_frames().collect();
         let reconstruction = sequence_sheet(&frames, &outputs.reconstruction, views);
         let sequences = gathered
             .protocol_sets
