@@ -1,10 +1,18 @@
 #!/usr/bin/env bash
 # The main command: a coordinator and two CPU worker processes on loopback train XFactor through
 # stage 1 and stage 2 on a small generated RE10K-layout dataset (in ./xfactor-local-run), then
-# print the job's figures. Extra arguments go to xfactor-local (e.g. --stage1-steps 40).
+# print the job's figures. `--transfer`, given first, runs the transfer recipe instead
+# (scripts/transfer-recipe.flags, in ./xfactor-transfer-run: about 55 minutes on 2 cores).
+# Extra arguments go to xfactor-local (e.g. --stage1-steps 40).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/setup.sh
 source scripts/env.sh
+FLAGS=()
+if [ "${1:-}" = --transfer ]; then
+    shift
+    mapfile -t FLAGS < <(recipe_flags scripts/transfer-recipe.flags)
+    FLAGS+=(--dir xfactor-transfer-run)
+fi
 cargo build --release -p coordinator -p worker -p evaluation --bins
-"$CARGO_TARGET_DIR/release/xfactor-local" "$@"
+"$CARGO_TARGET_DIR/release/xfactor-local" "${FLAGS[@]}" "$@"

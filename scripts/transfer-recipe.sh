@@ -5,8 +5,9 @@
 # key=value line per seed, then the spread over the seeds and whether every seed's stage-1
 # transfers lead the oracle's unrelated-path calibration by --spreads of their combined
 # spreads (exit 1 when one does not; --no-check: report only, as the ablations of
-# scripts/table3-miniature.sh need). Extra arguments go to xfactor-local (they override the
-# recipe's flags).
+# scripts/table3-miniature.sh need). The recipe's flags are scripts/transfer-recipe.flags
+# (about 55 minutes a seed on 2 cores; `scripts/run.sh --transfer` runs it once). Extra
+# arguments go to xfactor-local (they override the recipe's flags).
 #
 #   scripts/transfer-recipe.sh [--seeds 7,8,9] [--out transfer-runs] [--spreads 3] [--no-build]
 #                              [--no-curve] [--no-check] [-- XFACTOR_LOCAL_FLAGS...]
@@ -27,12 +28,7 @@ while [ $# -gt 0 ]; do
     esac
     shift
 done
-# The recipe: the small preset on 64 scenes x 16 paths on a 12000-step schedule, then 2000
-# multi-view stage-2 steps (150 do not teach Render its second view; docs/evaluation.md),
-# about 55 minutes a seed on 2 cores (stage 2 about 9 of them), evaluated on 64 held-out
-# scenes (the probe trains on 48 and is tested on 16) with the paper's probe.
-RECIPE=(--preset small --scenes 64 --paths 16 --stage1-steps 12000 --stage2-steps 2000
-    --checkpoint-every 2000 --evaluation-scenes 64 --probe-steps 10000 --probe-width 256)
+mapfile -t RECIPE < <(recipe_flags scripts/transfer-recipe.flags)
 if [ "$BUILD" = 1 ]; then
     cargo build --release -p coordinator -p worker -p evaluation --bins
 fi

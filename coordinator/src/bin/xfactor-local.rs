@@ -64,6 +64,8 @@ fn preset_name(name: &str) -> Result<String, serde_norway::Error> {
 #[command(
     name = "xfactor-local",
     version = telemetry::VERSION,
+    // A flag given twice takes its last value, so scripts append overrides to a recipe's flags.
+    args_override_self = true,
     after_help = "Examples:
   the README's first run (two CPU workers on generated data, then the evaluation):
     xfactor-local
