@@ -11,7 +11,7 @@ source scripts/env.sh
 FLAGS=()
 if [ "${1:-}" = --transfer ]; then
     shift
-    mapfile -t FLAGS < <(recipe_flags scripts/transfer-recipe.flags)
+    read_flags_file FLAGS scripts/transfer-recipe.flags
     FLAGS+=(--dir xfactor-transfer-run)
 fi
 cargo build --release -p coordinator -p worker -p evaluation --bins

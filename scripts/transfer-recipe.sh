@@ -28,7 +28,7 @@ while [ $# -gt 0 ]; do
     esac
     shift
 done
-mapfile -t RECIPE < <(recipe_flags scripts/transfer-recipe.flags)
+read_flags_file RECIPE scripts/transfer-recipe.flags
 if [ "$BUILD" = 1 ]; then
     cargo build --release -p coordinator -p worker -p evaluation --bins
 fi
