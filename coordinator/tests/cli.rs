@@ -228,6 +228,17 @@ fn bad_values_are_refused_naming_the_flag() {
     help::assert_refused(LOCAL, &["--variant", "bottleneck"], "--variant");
     help::assert_refused(LOCAL, &["--pose-dim", "0"], "--pose-dim");
     help::assert_refused(LOCAL, &["--evaluation-scenes", "3"], "--evaluation-scenes");
+    for count in [
+        "--workers",
+        "--stage1-steps",
+        "--stage2-steps",
+        "--image-size",
+        "--global-batch",
+        "--micro-batch",
+        "--checkpoint-every",
+    ] {
+        help::assert_refused(LOCAL, &[count, "0"], count);
+    }
 }
 
 #[test]

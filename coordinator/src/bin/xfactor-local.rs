@@ -53,6 +53,12 @@ fn objective_variant(name: &str) -> Result<ObjectiveVariant, serde_norway::Error
     serde_norway::from_str(name)
 }
 
+/// A count that must be at least one (workers, pixels): refused by clap, naming the flag, before
+/// any data is generated (the coordinator would refuse the YAML only after that).
+fn at_least_one_usize() -> clap::builder::RangedU64ValueParser<usize> {
+    clap::builder::RangedU64ValueParser::<usize>::new().range(1..)
+}
+
 /// Checks a `--preset` against the cluster YAML's `model.preset` names.
 fn preset_name(name: &str) -> Result<String, serde_norway::Error> {
     serde_norway::from_str::<ModelPreset>(name).map(|_| name.to_string())
@@ -77,13 +83,13 @@ struct Cli {
     #[arg(long, value_name = "DIR", default_value = DEFAULT_DIR)]
     dir: PathBuf,
     /// Worker processes
-    #[arg(long, value_name = "N", default_value_t = defaults().workers)]
+    #[arg(long, value_name = "N", default_value_t = defaults().workers, value_parser = at_least_one_usize())]
     workers: usize,
     /// Steps of stage 1
-    #[arg(long, value_name = "N", default_value_t = defaults().stage1_steps)]
+    #[arg(long, value_name = "N", default_value_t = defaults().stage1_steps, value_parser = clap::value_parser!(u64).range(1..))]
     stage1_steps: u64,
     /// Steps of stage 2
-    #[arg(long, value_name = "N", default_value_t = defaults().stage2_steps)]
+    #[arg(long, value_name = "N", default_value_t = defaults().stage2_steps, value_parser = clap::value_parser!(u64).range(1..))]
     stage2_steps: u64,
     /// Model preset: tiny, small (the transfer recipe's), benchmark or paper
     #[arg(long, value_name = "PRESET", default_value_t = defaults().preset, value_parser = preset_name)]
@@ -120,16 +126,16 @@ struct Cli {
     #[arg(long, value_name = "N", default_value_t = defaults().evaluation.probe_width as u64, value_parser = clap::value_parser!(u64).range(1..))]
     probe_width: u64,
     /// Training resolution in pixels
-    #[arg(long, value_name = "PX", default_value_t = defaults().image_size)]
+    #[arg(long, value_name = "PX", default_value_t = defaults().image_size, value_parser = at_least_one_usize())]
     image_size: usize,
     /// Samples per step over all workers
-    #[arg(long, value_name = "N", default_value_t = defaults().global_batch)]
+    #[arg(long, value_name = "N", default_value_t = defaults().global_batch, value_parser = clap::value_parser!(u64).range(1..))]
     global_batch: u64,
     /// Samples per forward pass
-    #[arg(long, value_name = "N", default_value_t = defaults().micro_batch)]
+    #[arg(long, value_name = "N", default_value_t = defaults().micro_batch, value_parser = clap::value_parser!(u64).range(1..))]
     micro_batch: u64,
     /// Commit a checkpoint every N steps
-    #[arg(long, value_name = "N", default_value_t = defaults().checkpoint_every)]
+    #[arg(long, value_name = "N", default_value_t = defaults().checkpoint_every, value_parser = clap::value_parser!(u64).range(1..))]
     checkpoint_every: u64,
     /// Device of every worker: cpu, wgpu, vulkan, cuda, libtorch or auto (the GPU roads need a
     /// worker built with their feature, beside this binary)
