@@ -91,7 +91,7 @@ fn a_bad_yaml_fails_before_anything_starts() {
 }
 
 #[test]
-fn help_lists_every_flag_with_its_default() {
+fn the_coordinators_help_lists_every_flag_with_its_default() {
     help::assert_flags(
         COORDINATOR,
         &["run"],
@@ -115,18 +115,22 @@ fn help_lists_every_flag_with_its_default() {
             ("--tls-domain", None),
         ],
     );
+}
+
+#[test]
+fn the_local_harness_help_lists_every_flag_with_its_default() {
     let job = LocalJob::demo(std::path::Path::new("unused"), 0);
     let (workers, stage1, stage2) = (
         job.workers.to_string(),
         job.stage1_steps.to_string(),
         job.stage2_steps.to_string(),
     );
-    let (image_size, global_batch, micro_batch) = (
+    let (image_size, global_batch, micro_batch, checkpoint_every) = (
         job.image_size.to_string(),
         job.global_batch.to_string(),
         job.micro_batch.to_string(),
+        job.checkpoint_every.to_string(),
     );
-    let checkpoint_every = job.checkpoint_every.to_string();
     let (scenes, paths, seed, peak_lr) = (
         job.scenes.to_string(),
         job.trajectories.to_string(),
@@ -145,6 +149,7 @@ fn help_lists_every_flag_with_its_default() {
             ("--dir", Some("xfactor-local-run")),
             ("--workers", Some(&workers)),
             ("--stage1-steps", Some(&stage1)),
+            ("--stage1-schedule-steps", None),
             ("--stage2-steps", Some(&stage2)),
             ("--preset", Some(&job.preset)),
             ("--scenes", Some(&scenes)),
@@ -198,6 +203,48 @@ fn table_3_flags_write_the_variant_latent_and_evaluation_into_the_yaml() {
     assert!(config["stage2"]["objective"]["variant"].is_null(), "{yaml}");
     assert_eq!(config["evaluate"]["scenes"], 64);
     assert_eq!(config["evaluate"]["probe"]["test_scenes"], 16);
+}
+
+#[test]
+fn a_longer_schedule_spans_stage_1s_cosine_and_curriculum_but_not_its_steps() {
+    let dir = tempfile::tempdir().unwrap();
+    let output = Command::new(LOCAL)
+        .arg("--dir")
+        .arg(dir.path())
+        .args(["--prepare-only", "--stage1-steps", "40"])
+        .args(["--stage1-schedule-steps", "120", "--stage2-steps", "30"])
+        .output()
+        .unwrap();
+    assert!(
+        output.status.success(),
+        "{}",
+        String::from_utf8_lossy(&output.stderr)
+    );
+    let yaml = std::fs::read_to_string(dir.path().join("cluster.yaml")).unwrap();
+    let config: serde_json::Value = serde_norway::from_str(&yaml).unwrap();
+    let stage1 = &config["stage1"];
+    assert_eq!(stage1["steps"], 40, "{yaml}");
+    assert_eq!(stage1["curriculum_steps"], 120, "{yaml}");
+    assert_eq!(stage1["schedule"]["total_steps"], 120, "{yaml}");
+    // Stage 2 keeps its own span.
+    assert_eq!(config["stage2"]["schedule"]["total_steps"], 30, "{yaml}");
+    assert_eq!(config["stage2"]["curriculum_steps"], 30, "{yaml}");
+    // A span shorter than the steps it trains is refused before anything is written.
+    let refused = dir.path().join("refused");
+    let output = Command::new(LOCAL)
+        .arg("--dir")
+        .arg(&refused)
+        .args(["--stage1-steps", "40", "--stage1-schedule-steps", "39"])
+        .output()
+        .unwrap();
+    let stderr = String::from_utf8_lossy(&output.stderr);
+    assert_eq!(output.status.code(), Some(1), "{stderr}");
+    assert!(stderr.contains("--stage1-schedule-steps 39"), "{stderr}");
+    assert!(
+        !refused.exists(),
+        "a refused run wrote {}",
+        refused.display()
+    );
 }
 
 #[test]

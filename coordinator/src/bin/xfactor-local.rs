@@ -88,6 +88,10 @@ struct Cli {
     /// Steps of stage 1
     #[arg(long, value_name = "N", default_value_t = defaults().stage1_steps, value_parser = clap::value_parser!(u64).range(1..))]
     stage1_steps: u64,
+    /// Steps stage 1's learning-rate cosine and window curriculum span (by default its steps):
+    /// more trains the first --stage1-steps of a longer schedule, step for step as its full run
+    #[arg(long, value_name = "N", value_parser = clap::value_parser!(u64).range(1..))]
+    stage1_schedule_steps: Option<u64>,
     /// Steps of stage 2
     #[arg(long, value_name = "N", default_value_t = defaults().stage2_steps, value_parser = clap::value_parser!(u64).range(1..))]
     stage2_steps: u64,
@@ -167,6 +171,16 @@ struct Cli {
 fn size_run(job: &mut LocalJob, cli: &Cli) -> anyhow::Result<()> {
     job.workers = cli.workers;
     job.stage1_steps = cli.stage1_steps;
+    job.stage1_schedule_steps = cli.stage1_schedule_steps;
+    if let Some(span) = cli
+        .stage1_schedule_steps
+        .filter(|span| *span < cli.stage1_steps)
+    {
+        anyhow::bail!(
+            "--stage1-schedule-steps {span} is shorter than --stage1-steps {}: a schedule spans at least the steps it trains",
+            cli.stage1_steps
+        );
+    }
     job.stage2_steps = cli.stage2_steps;
     job.global_batch = cli.global_batch;
     job.micro_batch = cli.micro_batch;

@@ -41,6 +41,10 @@ pub struct LocalJob {
     pub preset: String,
     /// Stage-1 steps.
     pub stage1_steps: u64,
+    /// Steps stage 1's cosine and window curriculum span (`None`: `stage1_steps`); a larger
+    /// span trains the first `stage1_steps` of a longer schedule, step for step as its full run
+    /// does (CI's transfer guard trains the recipe's first 4000 of 12000 steps).
+    pub stage1_schedule_steps: Option<u64>,
     /// Stage-2 steps.
     pub stage2_steps: u64,
     /// Samples per step.
@@ -116,6 +120,7 @@ impl LocalJob {
             image_size: 32,
             preset: "tiny".into(),
             stage1_steps: 20,
+            stage1_schedule_steps: None,
             stage2_steps: 10,
             global_batch: 8,
             micro_batch: 4,
@@ -179,8 +184,14 @@ impl LocalJob {
                 self.preset, self.image_size, self.image_size
             ),
             format!(
-                "training: {} + {} steps of {} samples, no LPIPS term (lpips_weight 0)",
-                self.stage1_steps, self.stage2_steps, self.global_batch
+                "training: {} + {} steps of {} samples{}, no LPIPS term (lpips_weight 0)",
+                self.stage1_steps,
+                self.stage2_steps,
+                self.global_batch,
+                match self.stage1_schedule() {
+                    span if span == self.stage1_steps => String::new(),
+                    span => format!(" (stage 1: the first of a {span}-step schedule)"),
+                }
             ),
         ];
         if let Some(views) = self.stage2_views_keeping_render {
@@ -192,6 +203,11 @@ impl LocalJob {
             notes.push(format!("objective variant {variant:?}"));
         }
         notes
+    }
+
+    /// The steps stage 1's schedule spans.
+    fn stage1_schedule(&self) -> u64 {
+        self.stage1_schedule_steps.unwrap_or(self.stage1_steps)
     }
 
     /// The job token (fixed per folder; local jobs are loopback-only).
@@ -312,14 +328,19 @@ impl LocalJob {
                 "data:\n  datasets:\n    - kind: re10k\n      uri: {data}\n      stage1: {{weight: 1, window_begin: 2, window_end: {window}}}\n      stage2: {{weight: 1, window_begin: {stage2_begin}, window_end: {window}}}"
             );
         }
-        for (stage, steps, peak_lr) in [
-            (1, self.stage1_steps, self.stage1_peak_lr),
-            (2, self.stage2_steps, 1e-3),
+        for (stage, steps, span, peak_lr) in [
+            (
+                1,
+                self.stage1_steps,
+                self.stage1_schedule(),
+                self.stage1_peak_lr,
+            ),
+            (2, self.stage2_steps, self.stage2_steps, 1e-3),
         ] {
-            let warmup = (steps / 200).clamp(2, 20);
+            let warmup = (span / 200).clamp(2, 20);
             let _ = writeln!(
                 yaml,
-                "stage{stage}:\n  steps: {steps}\n  global_batch: {}\n  micro_batch: {}\n  lpips_weight: 0\n  curriculum_steps: {steps}\n  schedule: {{initial_lr: 1.0e-4, peak_lr: {}, final_lr: 1.0e-4, warmup_steps: {warmup}, total_steps: {steps}}}",
+                "stage{stage}:\n  steps: {steps}\n  global_batch: {}\n  micro_batch: {}\n  lpips_weight: 0\n  curriculum_steps: {span}\n  schedule: {{initial_lr: 1.0e-4, peak_lr: {}, final_lr: 1.0e-4, warmup_steps: {warmup}, total_steps: {span}}}",
                 self.global_batch, self.micro_batch, peak_lr
             );
             let mut objective = Vec::new();
