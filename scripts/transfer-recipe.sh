@@ -6,15 +6,17 @@
 # transfers lead the oracle's unrelated-path calibration by --spreads of their combined
 # spreads (exit 1 when one does not; --no-check: report only, as the ablations of
 # scripts/table3-miniature.sh need). The recipe's flags are scripts/transfer-recipe.flags
-# (about 55 minutes a seed on 2 cores; `scripts/run.sh --transfer` runs it once). Extra
-# arguments go to xfactor-local (they override the recipe's flags).
+# (about 55 minutes a seed on 2 cores; `scripts/run.sh --transfer` runs it once); --quick reads
+# scripts/transfer-quick.flags instead (the recipe's first 8000 steps, the first run's
+# evaluation). Extra arguments go to xfactor-local (they override the recipe's flags).
 #
-#   scripts/transfer-recipe.sh [--seeds 7,8,9] [--out transfer-runs] [--spreads 3] [--no-build]
-#                              [--no-curve] [--no-check] [-- XFACTOR_LOCAL_FLAGS...]
+#   scripts/transfer-recipe.sh [--quick] [--seeds 7,8,9] [--out transfer-runs] [--spreads 3]
+#                              [--no-build] [--no-curve] [--no-check] [-- XFACTOR_LOCAL_FLAGS...]
 set -euo pipefail
 cd "$(dirname "$0")/.."
 source scripts/env.sh
 SEEDS=7,8,9 OUT=transfer-runs SPREADS=3 BUILD=1 CURVE=1 CHECK=1
+FLAGS_FILE=scripts/transfer-recipe.flags
 while [ $# -gt 0 ]; do
     case "$1" in
         --seeds) SEEDS="$2"; shift ;;
@@ -23,12 +25,13 @@ while [ $# -gt 0 ]; do
         --no-build) BUILD=0 ;;
         --no-curve) CURVE=0 ;;
         --no-check) CHECK=0 ;;
+        --quick) FLAGS_FILE=scripts/transfer-quick.flags ;;
         --) shift; break ;;
         *) echo "transfer-recipe: unknown argument $1 (xfactor-local's flags go after --)" >&2; exit 2 ;;
     esac
     shift
 done
-read_flags_file RECIPE scripts/transfer-recipe.flags
+read_flags_file RECIPE "$FLAGS_FILE"
 if [ "$BUILD" = 1 ]; then
     cargo build --release -p coordinator -p worker -p evaluation --bins
 fi
