@@ -177,23 +177,36 @@ fn the_local_harness_help_lists_every_flag_with_its_default() {
     );
 }
 
-#[test]
-fn table_3_flags_write_the_variant_latent_and_evaluation_into_the_yaml() {
+/// The cluster YAML `xfactor-local --prepare-only FLAGS` writes, as text and parsed.
+fn prepared_yaml(flags: &[&str]) -> (String, serde_json::Value) {
     let dir = tempfile::tempdir().unwrap();
     let output = Command::new(LOCAL)
         .arg("--dir")
         .arg(dir.path())
-        .args(["--prepare-only", "--variant", "extra_view_encoder_decoder"])
-        .args(["--pose-dim", "4", "--evaluation-scenes", "64"])
+        .arg("--prepare-only")
+        .args(flags)
         .output()
         .unwrap();
     assert!(
         output.status.success(),
-        "{}",
+        "{flags:?}: {}",
         String::from_utf8_lossy(&output.stderr)
     );
     let yaml = std::fs::read_to_string(dir.path().join("cluster.yaml")).unwrap();
-    let config: serde_json::Value = serde_norway::from_str(&yaml).unwrap();
+    let config = serde_norway::from_str(&yaml).unwrap();
+    (yaml, config)
+}
+
+#[test]
+fn table_3_flags_write_the_variant_latent_and_evaluation_into_the_yaml() {
+    let (yaml, config) = prepared_yaml(&[
+        "--variant",
+        "extra_view_encoder_decoder",
+        "--pose-dim",
+        "4",
+        "--evaluation-scenes",
+        "64",
+    ]);
     assert_eq!(config["model"]["pose_dim"], 4, "{yaml}");
     assert_eq!(
         config["stage1"]["objective"]["variant"],
@@ -207,21 +220,14 @@ fn table_3_flags_write_the_variant_latent_and_evaluation_into_the_yaml() {
 
 #[test]
 fn a_longer_schedule_spans_stage_1s_cosine_and_curriculum_but_not_its_steps() {
-    let dir = tempfile::tempdir().unwrap();
-    let output = Command::new(LOCAL)
-        .arg("--dir")
-        .arg(dir.path())
-        .args(["--prepare-only", "--stage1-steps", "40"])
-        .args(["--stage1-schedule-steps", "120", "--stage2-steps", "30"])
-        .output()
-        .unwrap();
-    assert!(
-        output.status.success(),
-        "{}",
-        String::from_utf8_lossy(&output.stderr)
-    );
-    let yaml = std::fs::read_to_string(dir.path().join("cluster.yaml")).unwrap();
-    let config: serde_json::Value = serde_norway::from_str(&yaml).unwrap();
+    let (yaml, config) = prepared_yaml(&[
+        "--stage1-steps",
+        "40",
+        "--stage1-schedule-steps",
+        "120",
+        "--stage2-steps",
+        "30",
+    ]);
     let stage1 = &config["stage1"];
     assert_eq!(stage1["steps"], 40, "{yaml}");
     assert_eq!(stage1["curriculum_steps"], 120, "{yaml}");
@@ -230,6 +236,7 @@ fn a_longer_schedule_spans_stage_1s_cosine_and_curriculum_but_not_its_steps() {
     assert_eq!(config["stage2"]["schedule"]["total_steps"], 30, "{yaml}");
     assert_eq!(config["stage2"]["curriculum_steps"], 30, "{yaml}");
     // A span shorter than the steps it trains is refused before anything is written.
+    let dir = tempfile::tempdir().unwrap();
     let refused = dir.path().join("refused");
     let output = Command::new(LOCAL)
         .arg("--dir")
