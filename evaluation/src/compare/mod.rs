@@ -133,12 +133,14 @@ fn compared_stage(
 }
 
 /// Whether two specs evaluate the same way: every setting but the seed (seeds of one variant
-/// are each evaluated on their own held-out draws) and the jobs' notes on their training,
-/// which differ between the variants a comparison is for.
+/// are each evaluated on their own held-out draws), the jobs' notes on their training, which
+/// differ between the variants a comparison is for, and whether an untrained model was scored
+/// beside the trained one (it adds rows and changes no trained figure; the table shows n/a).
 fn evaluated_alike(a: &EvaluationSpec, b: &EvaluationSpec) -> bool {
     let settings = |spec: &EvaluationSpec| EvaluationSpec {
         notes: Vec::new(),
         seed: 0,
+        compare_untrained: false,
         ..spec.clone()
     };
     settings(a) == settings(b)
@@ -518,9 +520,11 @@ mod tests {
         let first = write_run(dir.path(), "a", &report(1.0, 1.0, 8));
         let mut noted = seeded(report(1.0, 1.0, 8), 7);
         noted.spec.notes = vec!["another objective".into()];
+        noted.spec.compare_untrained = !noted.spec.compare_untrained;
         let alike = write_run(dir.path(), "noted", &noted);
-        read_runs(&[first.clone(), alike], &[], None)
-            .expect("notes on training and the seed are not evaluation settings");
+        read_runs(&[first.clone(), alike], &[], None).expect(
+            "notes on training, the seed and the untrained comparison are not evaluation settings",
+        );
         let mut other = report(1.0, 1.0, 8);
         other.spec.scenes += 1;
         let second = write_run(dir.path(), "b", &other);
