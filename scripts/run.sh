@@ -4,7 +4,7 @@
 # print the job's figures. `--transfer`, given first, runs the transfer recipe instead
 # (scripts/transfer-recipe.flags, in ./xfactor-transfer-run: about 55 minutes on 2 cores);
 # `--transfer-quick` its first 8000 stage-1 steps with the first run's evaluation
-# (scripts/transfer-quick.flags, in ./xfactor-transfer-quick-run: about 22 minutes).
+# (scripts/transfer-quick.flags, in ./xfactor-transfer-quick-run: about 20 minutes).
 # Extra arguments go to xfactor-local (e.g. --stage1-steps 40).
 set -euo pipefail
 cd "$(dirname "$0")/.."
