@@ -169,9 +169,6 @@ struct Cli {
 
 /// The run's sizes from the flags: workers, steps, batch, model, data, schedule, evaluation.
 fn size_run(job: &mut LocalJob, cli: &Cli) -> anyhow::Result<()> {
-    job.workers = cli.workers;
-    job.stage1_steps = cli.stage1_steps;
-    job.stage1_schedule_steps = cli.stage1_schedule_steps;
     if let Some(span) = cli
         .stage1_schedule_steps
         .filter(|span| *span < cli.stage1_steps)
@@ -181,6 +178,9 @@ fn size_run(job: &mut LocalJob, cli: &Cli) -> anyhow::Result<()> {
             cli.stage1_steps
         );
     }
+    job.workers = cli.workers;
+    job.stage1_steps = cli.stage1_steps;
+    job.stage1_schedule_steps = cli.stage1_schedule_steps;
     job.stage2_steps = cli.stage2_steps;
     job.global_batch = cli.global_batch;
     job.micro_batch = cli.micro_batch;
