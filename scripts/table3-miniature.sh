@@ -1,12 +1,13 @@
 #!/usr/bin/env bash
 # The paper's Table 3 in miniature (issue 52): each ablation trained at the transfer recipe's
-# budget (scripts/transfer-recipe.sh: the small model, 64 generated scenes, 12000 stage-1
-# steps, evaluated on 64 held-out scenes with the paper's probe), for every seed, then laid
-# side by side by `xfactor compare` on stage 1 (the checkpoint Table 3 scores): one row per
-# variant with its mean and standard deviation over seeds, one line per run with its bootstrap
-# spreads and its transfers' lead over the unrelated path. A run whose folder already holds an
-# evaluation is not trained again, so the table can be completed over several sessions; its
-# latest evaluation is the one compared. About 45 minutes a run on 2 cores.
+# stage-1 budget (scripts/transfer-recipe.sh: the small model, 64 generated scenes, 12000
+# stage-1 steps, evaluated on 64 held-out scenes with the paper's probe; `--stage1-only`, as
+# Table 3 compares stage 1), for every seed, then laid side by side by `xfactor compare`: one
+# row per variant with its mean and standard deviation over seeds, one line per run with its
+# bootstrap spreads and its transfers' lead over the unrelated path. A run whose folder already
+# holds an evaluation is not trained again, so the table can be completed over several
+# sessions; its latest evaluation is the one compared. About 30 minutes a run on 2 cores (the
+# extra view in encoder and decoder: 55).
 #
 #   scripts/table3-miniature.sh [--seeds 8,9] [--variants xfactor,unconstrained,...]
 #                               [--out table3-runs] [--no-build]
@@ -53,7 +54,7 @@ for variant in ${VARIANTS//,/ }; do
         if [ -z "$(latest_report "$run")" ]; then
             # shellcheck disable=SC2086 # the variant's flags are words
             scripts/transfer-recipe.sh --no-build --no-curve --no-check --seeds "$seed" \
-                --out "$OUT/$variant" -- $flags
+                --out "$OUT/$variant" -- $flags --stage1-only
         fi
         REPORTS+=("$(latest_report "$run")")
         LABELS+=(--label "$variant")

@@ -8,7 +8,8 @@
 # scripts/table3-miniature.sh need). The recipe's flags are scripts/transfer-recipe.flags
 # (about 55 minutes a seed on 2 cores; `scripts/run.sh --transfer` runs it once); --quick reads
 # scripts/transfer-quick.flags instead (the recipe's first 8000 steps, the first run's
-# evaluation). Extra arguments go to xfactor-local (they override the recipe's flags).
+# evaluation). Extra arguments go to xfactor-local (they override the recipe's flags; with
+# --stage1-only, stage 2's figures read n/a).
 #
 #   scripts/transfer-recipe.sh [--quick] [--seeds 7,8,9] [--out transfer-runs] [--spreads 3]
 #                              [--no-build] [--no-curve] [--no-check] [-- XFACTOR_LOCAL_FLAGS...]
@@ -58,9 +59,11 @@ PY
     line=$(awk -v seed="$seed" -v tps="$tps" -v ts="$tps_spread" -v cal="$calibration" -v cs="$calibration_spread" \
         -v s2="$(field stage2_tps_auc30 "$figures")" -v s2s="$(field stage2_tps_auc30_spread "$figures")" \
         -v probe="$(field stage1_probe_auc30 "$figures")" -v untrained="$(field stage1_untrained_probe_auc30 "$figures")" \
-        -v psnr="$(field stage1_psnr "$figures")" -v seconds="$(field seconds "$figures")" 'BEGIN {
+        -v psnr="$(field stage1_psnr "$figures")" -v seconds="$(field seconds "$figures")" '
+        function shown(x) { return x == "" ? "n/a" : sprintf("%.3f", x) }
+        BEGIN {
         lead = (tps - cal) / sqrt(ts * ts + cs * cs)
-        printf "bench=transfer_recipe seed=%s stage1_tps_auc30=%.3f stage1_tps_auc30_spread=%.3f unrelated_auc30=%.3f unrelated_auc30_spread=%.3f lead_in_spreads=%.2f stage2_tps_auc30=%.3f stage2_tps_auc30_spread=%.3f stage1_probe_auc30=%.3f stage1_untrained_probe_auc30=%.3f stage1_psnr=%.2f seconds=%s\n", seed, tps, ts, cal, cs, lead, s2, s2s, probe, untrained, psnr, seconds
+        printf "bench=transfer_recipe seed=%s stage1_tps_auc30=%.3f stage1_tps_auc30_spread=%.3f unrelated_auc30=%.3f unrelated_auc30_spread=%.3f lead_in_spreads=%.2f stage2_tps_auc30=%s stage2_tps_auc30_spread=%s stage1_probe_auc30=%s stage1_untrained_probe_auc30=%s stage1_psnr=%.2f seconds=%s\n", seed, tps, ts, cal, cs, lead, shown(s2), shown(s2s), shown(probe), shown(untrained), psnr, seconds
     }')
     echo "$line"
     LINES+=("$line")

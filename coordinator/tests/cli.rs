@@ -151,6 +151,7 @@ fn the_local_harness_help_lists_every_flag_with_its_default() {
             ("--stage1-steps", Some(&stage1)),
             ("--stage1-schedule-steps", None),
             ("--stage2-steps", Some(&stage2)),
+            ("--stage1-only", None),
             ("--preset", Some(&job.preset)),
             ("--scenes", Some(&scenes)),
             ("--paths", Some(&paths)),
@@ -198,7 +199,7 @@ fn prepared_yaml(flags: &[&str]) -> (String, serde_json::Value) {
 }
 
 #[test]
-fn table_3_flags_write_the_variant_latent_and_evaluation_into_the_yaml() {
+fn table_3_flags_write_the_variant_latent_last_stage_and_evaluation_into_the_yaml() {
     let (yaml, config) = prepared_yaml(&[
         "--variant",
         "extra_view_encoder_decoder",
@@ -206,8 +207,17 @@ fn table_3_flags_write_the_variant_latent_and_evaluation_into_the_yaml() {
         "4",
         "--evaluation-scenes",
         "64",
+        "--stage1-only",
     ]);
     assert_eq!(config["model"]["pose_dim"], 4, "{yaml}");
+    assert_eq!(config["stop_after"], "stage1", "{yaml}");
+    let training = &config["evaluate"]["notes"][2];
+    assert!(
+        training
+            .as_str()
+            .is_some_and(|t| t.starts_with("training: 4000 stage-1 steps")),
+        "{yaml}"
+    );
     assert_eq!(
         config["stage1"]["objective"]["variant"],
         "extra_view_encoder_decoder"

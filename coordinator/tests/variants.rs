@@ -1,7 +1,8 @@
 //! The paper's Table 3 in miniature: five tiny variants (XFactor's transfer objective, plain
 //! autoencoding, autoencoding through a smaller pose latent, an extra view for PoseEnc and
 //! Render, and explicit cameras with Plücker-ray conditioning) trained and evaluated through
-//! the local harness, then laid side by side by `xfactor compare`.
+//! the local harness, then laid side by side by `xfactor compare`; and a job that stops after
+//! stage 1, the checkpoint the table compares.
 
 mod common;
 
@@ -66,6 +67,38 @@ fn five_variants_train_evaluate_and_compare_in_one_table() {
         table
     );
     assert!(image::open(out.join("compare.png")).unwrap().width() > 0);
+}
+
+#[test]
+fn a_job_stopping_after_stage_1_trains_and_evaluates_stage_1_alone() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut job = small_job(dir.path(), 2);
+    job.stage1_only = true;
+    job.evaluate = true;
+    let checkpoints = job.checkpoint_dir();
+    let report = Running::start(job).finish(Duration::from_secs(300));
+    assert_eq!(report["outcome"], "finished", "{report:#}");
+    let stages: Vec<&serde_json::Value> = report["steps"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|step| &step["stage"])
+        .collect();
+    assert_eq!(stages, vec![&serde_json::json!(1); 4], "{report:#}");
+    assert!(common::commits(&report, 2).is_empty(), "{report:#}");
+    assert!(report["stage2_final"].is_null(), "{report:#}");
+    let evaluation = PathBuf::from(report["evaluation"].as_str().expect("an evaluation"));
+    let numbers: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(evaluation.join("report.json")).unwrap()).unwrap();
+    let scored: Vec<&str> = numbers["stages"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|stage| stage["checkpoint"]["label"].as_str().unwrap_or("?"))
+        .collect();
+    assert_eq!(scored, ["stage1"]);
+    assert!(checkpoints.join("curves/stage1.csv").exists());
+    assert!(!checkpoints.join("curves/stage2.csv").exists());
 }
 
 /// Trains and evaluates one tiny variant under `root/name`, checking that its evaluation

@@ -95,6 +95,10 @@ struct Cli {
     /// Steps of stage 2
     #[arg(long, value_name = "N", default_value_t = defaults().stage2_steps, value_parser = clap::value_parser!(u64).range(1..))]
     stage2_steps: u64,
+    /// Train stage 1 alone and evaluate its final weights (the checkpoint the paper's Table 3
+    /// compares); stage 2's settings are written to the YAML but not trained
+    #[arg(long)]
+    stage1_only: bool,
     /// Model preset: tiny, small (the transfer recipe's), benchmark or paper
     #[arg(long, value_name = "PRESET", default_value_t = defaults().preset, value_parser = preset_name)]
     preset: String,
@@ -182,6 +186,7 @@ fn size_run(job: &mut LocalJob, cli: &Cli) -> anyhow::Result<()> {
     job.stage1_steps = cli.stage1_steps;
     job.stage1_schedule_steps = cli.stage1_schedule_steps;
     job.stage2_steps = cli.stage2_steps;
+    job.stage1_only = cli.stage1_only;
     job.global_batch = cli.global_batch;
     job.micro_batch = cli.micro_batch;
     job.checkpoint_every = cli.checkpoint_every;
@@ -307,7 +312,7 @@ fn print_figures(job: &LocalJob, seconds: f64) -> anyhow::Result<()> {
         steps.iter().filter(|r| r["stage"] == number).collect()
     };
     let mut figures = Vec::new();
-    for number in [1, 2] {
+    for &number in job.trained_stages() {
         let records = stage(number);
         let timed = StepTimes::of(&records);
         let (first, last) = loss_ends(
@@ -334,7 +339,7 @@ fn print_figures(job: &LocalJob, seconds: f64) -> anyhow::Result<()> {
         job.image_size,
         job.global_batch,
         job.micro_batch,
-        job.stage1_steps + job.stage2_steps,
+        job.trained_steps(),
         figures.join(" "),
         report["restarts"],
         report["checksum_mismatches"].as_array().map_or(0, Vec::len),
@@ -357,9 +362,15 @@ fn print_where_to_look(job: &LocalJob, evaluation: Option<&Path>) {
             evaluation.display()
         );
     }
+    let curves: Vec<String> = job
+        .trained_stages()
+        .iter()
+        .map(|stage| format!("stage{stage}.png"))
+        .collect();
     println!(
-        "curves:      {}/curves/stage1.png, stage2.png (and .svg, .csv)",
-        checkpoints.display()
+        "curves:      {}/curves/{} (and .svg, .csv)",
+        checkpoints.display(),
+        curves.join(", ")
     );
     let cache = settings::cache::project_cache();
     println!(

@@ -101,8 +101,8 @@ pub struct ClusterConfig {
     /// examples: a few bad frames in millions are noise, thousands mean the data is broken.
     #[serde(default = "default_max_skipped_frames")]
     pub max_skipped_frames: u64,
-    /// Evaluate stage 2's final weights (TPS, pose probe, reconstruction) on one worker once
-    /// training is done; the report lands under `<checkpoint.uri>/evaluation/`. Absent: no
+    /// Evaluate the final weights of every trained stage (TPS, pose probe, reconstruction) on
+    /// one worker once training is done; the report lands under `<checkpoint.uri>/evaluation/`. Absent: no
     /// evaluation stage. Every key is optional (`evaluate: {}` takes the defaults).
     #[serde(default)]
     pub evaluate: Option<EvaluationSpec>,
@@ -111,6 +111,23 @@ pub struct ClusterConfig {
     /// initialisation; the optimiser starts afresh at step 0. Its model must be the job's.
     #[serde(default)]
     pub init_weights: Option<NonEmpty>,
+    /// The last stage the job trains: `stage2` (both, the default) or `stage1` (the stereo
+    /// model alone, the checkpoint the paper's Table 3 compares). With `stage1`, stage 2's
+    /// section is still read and checked but never trained, and the evaluation scores stage
+    /// 1's final weights.
+    #[serde(default)]
+    pub stop_after: LastStage,
+}
+
+/// The last training stage of a job.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Deserialize, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum LastStage {
+    /// Stage 1 alone.
+    Stage1,
+    /// Stage 1, then stage 2 from its final weights.
+    #[default]
+    Stage2,
 }
 
 /// PEM files of the coordinator's TLS identity. They are read when the job starts, so a

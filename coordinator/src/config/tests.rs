@@ -432,3 +432,14 @@ fn the_data_path_settings_default_to_auto_checksums_and_a_float32_wire() {
     let zero = error_of(&format!("{GOOD}workers:\n  checksum_every: 0\n"));
     assert!(zero.contains("checksum_every"), "{zero}");
 }
+
+#[test]
+fn stop_after_takes_either_stage_and_names_itself_when_wrong() {
+    let both = ClusterConfig::from_yaml(GOOD, "cluster.yaml").unwrap();
+    assert_eq!(both.stop_after, LastStage::Stage2);
+    let first = ClusterConfig::from_yaml(&format!("{GOOD}stop_after: stage1\n"), "c.yaml").unwrap();
+    assert_eq!(first.stop_after, LastStage::Stage1);
+    let wrong = error_of(&format!("{GOOD}stop_after: stage3\n"));
+    assert!(wrong.contains("stop_after"), "{wrong}");
+    assert!(wrong.contains("unknown variant `stage3`"), "{wrong}");
+}

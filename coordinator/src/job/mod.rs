@@ -234,10 +234,15 @@ impl JobState {
 
     /// The phase after `phase` in this job.
     fn next_phase(&self, phase: Phase) -> Phase {
+        let after_training = if self.plan.config.evaluate.is_some() {
+            Phase::Evaluate
+        } else {
+            Phase::Finished
+        };
         match phase {
-            Phase::Stage1 => Phase::Stage2,
-            Phase::Stage2 if self.plan.config.evaluate.is_some() => Phase::Evaluate,
-            Phase::Stage2 | Phase::Evaluate | Phase::Finished => Phase::Finished,
+            Phase::Stage1 if self.plan.trains(Phase::Stage2) => Phase::Stage2,
+            Phase::Stage1 | Phase::Stage2 => after_training,
+            Phase::Evaluate | Phase::Finished => Phase::Finished,
         }
     }
 
@@ -472,13 +477,23 @@ impl JobState {
         match commit.phase {
             Phase::Stage1 => {
                 self.report.stage1_final = Some(commit.location);
-                tracing::info!("stage 1 finished; stage 2 starts from its final weights");
+                match self.durable.phase {
+                    Phase::Stage2 => {
+                        tracing::info!("stage 1 finished; stage 2 starts from its final weights")
+                    }
+                    Phase::Evaluate => tracing::info!(
+                        "stage 1 finished, the last stage of this job; one worker evaluates its final weights"
+                    ),
+                    _ => tracing::info!(
+                        "stage 1 finished, the last stage of this job; the job is done"
+                    ),
+                }
             }
             Phase::Stage2 if self.finished() => {
                 tracing::info!("stage 2 finished; the job is done");
             }
             Phase::Stage2 => {
-                tracing::info!("stage 2 finished; one worker evaluates its final weights");
+                tracing::info!("stage 2 finished; one worker evaluates the final weights");
             }
             Phase::Evaluate | Phase::Finished => {
                 self.report.evaluation = Some(commit.location);

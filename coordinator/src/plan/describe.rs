@@ -6,6 +6,7 @@
 use std::fmt::Write as _;
 
 use data::spec::{rank_slice, shard_ids, steps_per_epoch};
+use settings::Phase;
 use settings::data::{DataSource, StoredDataset};
 
 use super::{Plan, StagePlan};
@@ -71,6 +72,10 @@ impl Plan {
 
     /// One stage's length, batch, schedule and LPIPS weight, and each rank's share of a step.
     fn describe_stage(&self, out: &mut String, stage: &StagePlan) {
+        if !self.trains(stage.phase) {
+            let _ = writeln!(out, "{}: not trained (stop_after: stage1)", stage.phase);
+            return;
+        }
         let train = &stage.train;
         let _ = writeln!(
             out,
@@ -148,7 +153,12 @@ impl Plan {
             Some(spec) => {
                 let _ = writeln!(
                     out,
-                    "stage 3: one worker evaluates stage 2's final weights ({} scenes x {} trajectories, {} TPS pairs, probe {} steps); report under {}/evaluation/",
+                    "stage 3: one worker evaluates the final weights of {} ({} scenes x {} trajectories, {} TPS pairs, probe {} steps); report under {}/evaluation/",
+                    if self.trains(Phase::Stage2) {
+                        "both stages"
+                    } else {
+                        "stage 1"
+                    },
                     spec.scenes,
                     spec.trajectories,
                     spec.tps_pairs,

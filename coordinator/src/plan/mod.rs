@@ -10,7 +10,7 @@ use settings::XFactorConfig;
 use settings::data::{DataSource, DataSpec};
 use settings::train::{StageObjective, TrainConfig};
 
-use crate::config::{ClusterConfig, DataConfig, StageConfig};
+use crate::config::{ClusterConfig, DataConfig, LastStage, StageConfig};
 
 mod datasets;
 mod describe;
@@ -108,7 +108,8 @@ pub enum PlanError {
 pub struct StagePlan {
     /// Stage 1 or stage 2.
     pub phase: Phase,
-    /// Optimiser steps.
+    /// Optimiser steps; 0 for a stage the job does not train (stage 2 of `stop_after:
+    /// stage1`), so progress and estimates count only what runs.
     pub steps: u64,
     /// Trainer settings sent to workers (threads are the worker's own choice).
     pub train: TrainConfig,
@@ -179,7 +180,7 @@ impl Plan {
             DataConfig::Datasets(datasets) => index_datasets(datasets).await?,
         };
         held_out::check_held_out(&config, &manifests).await?;
-        let stages = [
+        let mut stages = [
             stage_plan(
                 &config,
                 Phase::Stage1,
@@ -197,6 +198,9 @@ impl Plan {
                 model.image_size,
             ),
         ];
+        if config.stop_after == LastStage::Stage1 {
+            stages[1].steps = 0;
+        }
         Ok(Self {
             config,
             model,
@@ -208,5 +212,19 @@ impl Plan {
     /// The plan of training stage `phase`; the stage-2 plan for any later phase.
     pub fn stage(&self, phase: Phase) -> &StagePlan {
         &self.stages[usize::from(phase != Phase::Stage1)]
+    }
+
+    /// Whether the job trains `phase` (not stage 2 when it stops after stage 1; never the
+    /// evaluation).
+    pub fn trains(&self, phase: Phase) -> bool {
+        phase.is_training() && self.stage(phase).steps > 0
+    }
+
+    /// The training stages the job runs, in order.
+    pub fn trained_stages(&self) -> Vec<Phase> {
+        [Phase::Stage1, Phase::Stage2]
+            .into_iter()
+            .filter(|&phase| self.trains(phase))
+            .collect()
     }
 }

@@ -108,8 +108,14 @@ impl CoordinatorService {
                 .map_err(ServeError::OpenStore)?,
             board: tensorboard::TensorBoard::new(self.checkpoints.clone()),
         };
-        let config = tensorboard::resolved_config(self.state.lock().await.plan());
-        for stage in [Phase::Stage1, Phase::Stage2] {
+        let (config, stages) = {
+            let state = self.state.lock().await;
+            (
+                tensorboard::resolved_config(state.plan()),
+                state.plan().trained_stages(),
+            )
+        };
+        for stage in stages {
             recorders.board.record_config(stage, &config);
         }
         Ok(Mutex::new(recorders))
@@ -123,7 +129,10 @@ impl CoordinatorService {
         health: &JobHealth,
         recorders: &Mutex<Recorders>,
     ) -> Option<lease::LeaseError> {
-        let mut phase = self.state.lock().await.phase();
+        let (mut phase, stages) = {
+            let state = self.state.lock().await;
+            (state.phase(), state.plan().trained_stages())
+        };
         let mut renewed = Instant::now();
         loop {
             tokio::time::sleep(TICK_EVERY).await;
@@ -131,7 +140,7 @@ impl CoordinatorService {
                 return Some(lost);
             }
             let (done, now_phase) = self.tick_job(recorders).await;
-            for stage in [Phase::Stage1, Phase::Stage2] {
+            for &stage in &stages {
                 if phase <= stage && stage < now_phase {
                     self.write_curves(stage).await;
                 }

@@ -81,6 +81,44 @@ fn without_an_evaluation_stage_2_ends_the_job() {
 }
 
 #[test]
+fn a_job_stopping_after_stage_1_evaluates_stage_1_alone_or_ends_there() {
+    let mut run = Run::of(plan_with("evaluate: {}\nstop_after: stage1\n"), None);
+    assert_eq!(
+        run.state.status(run.now).job_steps_total,
+        4,
+        "no stage-2 steps"
+    );
+    let generation = run.assign(0)[0].as_ref().unwrap().generation;
+    let w0 = run.workers[0];
+    assert!(run.commit(w0, Phase::Stage1, 4, generation), "stage 1 ends");
+    assert_eq!(run.state.phase(), Phase::Evaluate);
+    let after = run.assign(generation);
+    let evaluator = after.iter().find(|a| a.is_some()).unwrap();
+    let scored: Vec<&str> = evaluation(evaluator)
+        .checkpoints
+        .iter()
+        .map(|c| c.weights.as_str())
+        .collect();
+    assert_eq!(scored, ["mem://stage1/4"]);
+
+    let plan = run.state.plan().describe();
+    assert!(
+        plan.contains("stage2: not trained (stop_after: stage1)"),
+        "{plan}"
+    );
+    assert!(
+        plan.contains("evaluates the final weights of stage 1 "),
+        "{plan}"
+    );
+
+    let mut run = Run::of(plan_with("stop_after: stage1\n"), None);
+    let generation = run.assign(0)[0].as_ref().unwrap().generation;
+    assert!(run.commit(run.workers[0], Phase::Stage1, 4, generation));
+    assert!(run.state.finished());
+    assert_eq!(run.state.durable().stage2_final, None);
+}
+
+#[test]
 fn stale_foreign_and_wrong_phase_commits_are_refused() {
     let mut run = Run::new(false, None);
     let generation = run.assign(0)[0].as_ref().unwrap().generation;
