@@ -328,12 +328,14 @@ fn the_erayzer_example_mixes_seven_datasets_with_its_weights_and_schedule() {
 
 #[test]
 fn the_table_3_examples_differ_from_the_paper_only_in_objective_pose_size_and_views() {
+    use coordinator::config::LastStage;
     use settings::objective::ObjectiveVariant;
     let read = |name: &str| {
         ClusterConfig::from_file(&repository().join("deploy/examples").join(name))
             .unwrap_or_else(|e| panic!("{name}: {e}"))
     };
     let paper = read("paper.yaml");
+    assert_eq!(paper.stop_after, LastStage::Stage2);
     for (name, variant, pose_dim) in [
         ("table3-xfactor.yaml", ObjectiveVariant::Transfer, 256),
         (
@@ -345,6 +347,11 @@ fn the_table_3_examples_differ_from_the_paper_only_in_objective_pose_size_and_vi
         ("table3-se3-plucker.yaml", ObjectiveVariant::Se3Plucker, 10),
     ] {
         let column = read(name);
+        assert_eq!(
+            column.stop_after,
+            LastStage::Stage1,
+            "{name}: Table 3 is stage 1's"
+        );
         assert_eq!(column.stage1.objective.variant, variant, "{name}");
         assert_eq!(column.stage2.objective.variant, variant, "{name}");
         let model = column.model_config().unwrap();
@@ -380,6 +387,11 @@ fn the_table_3_examples_differ_from_the_paper_only_in_objective_pose_size_and_vi
         ),
     ] {
         let column = read(name);
+        assert_eq!(
+            column.stop_after,
+            LastStage::Stage1,
+            "{name}: Table 3 is stage 1's"
+        );
         assert_eq!(column.stage1.objective.variant, variant, "{name}");
         assert_eq!(
             column.stage2.objective.variant,
