@@ -5,7 +5,7 @@
 use std::collections::BTreeSet;
 use std::path::{Path, PathBuf};
 
-use coordinator::config::ClusterConfig;
+use coordinator::config::{ClusterConfig, LastStage};
 
 // Only the help-text reader: the help assertions are tests/cli.rs's.
 #[allow(dead_code)]
@@ -326,15 +326,27 @@ fn the_erayzer_example_mixes_seven_datasets_with_its_weights_and_schedule() {
     }
 }
 
+/// The example `deploy/examples/NAME`, read and checked.
+fn example(name: &str) -> ClusterConfig {
+    ClusterConfig::from_file(&repository().join("deploy/examples").join(name))
+        .unwrap_or_else(|e| panic!("{name}: {e}"))
+}
+
+/// A Table 3 example: a job that stops after stage 1, the model the table scores.
+fn table3_column(name: &str) -> ClusterConfig {
+    let column = example(name);
+    assert_eq!(
+        column.stop_after,
+        LastStage::Stage1,
+        "{name}: Table 3 is stage 1's"
+    );
+    column
+}
+
 #[test]
 fn the_table_3_examples_differ_from_the_paper_only_in_objective_pose_size_and_views() {
-    use coordinator::config::LastStage;
     use settings::objective::ObjectiveVariant;
-    let read = |name: &str| {
-        ClusterConfig::from_file(&repository().join("deploy/examples").join(name))
-            .unwrap_or_else(|e| panic!("{name}: {e}"))
-    };
-    let paper = read("paper.yaml");
+    let paper = example("paper.yaml");
     assert_eq!(paper.stop_after, LastStage::Stage2);
     for (name, variant, pose_dim) in [
         ("table3-xfactor.yaml", ObjectiveVariant::Transfer, 256),
@@ -346,12 +358,7 @@ fn the_table_3_examples_differ_from_the_paper_only_in_objective_pose_size_and_vi
         ("table3-bottleneck.yaml", ObjectiveVariant::Autoencode, 16),
         ("table3-se3-plucker.yaml", ObjectiveVariant::Se3Plucker, 10),
     ] {
-        let column = read(name);
-        assert_eq!(
-            column.stop_after,
-            LastStage::Stage1,
-            "{name}: Table 3 is stage 1's"
-        );
+        let column = table3_column(name);
         assert_eq!(column.stage1.objective.variant, variant, "{name}");
         assert_eq!(column.stage2.objective.variant, variant, "{name}");
         let model = column.model_config().unwrap();
@@ -386,12 +393,7 @@ fn the_table_3_examples_differ_from_the_paper_only_in_objective_pose_size_and_vi
             ObjectiveVariant::ExtraViewEncoderDecoder,
         ),
     ] {
-        let column = read(name);
-        assert_eq!(
-            column.stop_after,
-            LastStage::Stage1,
-            "{name}: Table 3 is stage 1's"
-        );
+        let column = table3_column(name);
         assert_eq!(column.stage1.objective.variant, variant, "{name}");
         assert_eq!(
             column.stage2.objective.variant,

@@ -86,7 +86,6 @@ fn a_job_stopping_after_stage_1_trains_and_evaluates_stage_1_alone() {
         .collect();
     assert_eq!(stages, vec![&serde_json::json!(1); 4], "{report:#}");
     assert!(common::commits(&report, 2).is_empty(), "{report:#}");
-    assert!(report["stage2_final"].is_null(), "{report:#}");
     let evaluation = PathBuf::from(report["evaluation"].as_str().expect("an evaluation"));
     let numbers: serde_json::Value =
         serde_json::from_slice(&std::fs::read(evaluation.join("report.json")).unwrap()).unwrap();

@@ -11,7 +11,7 @@ pub enum Phase {
     Stage1,
     /// Multi-view fine-tune from stage 1's final weights.
     Stage2,
-    /// One worker evaluates stage 2's final weights.
+    /// One worker evaluates the final weights of the trained stages.
     Evaluate,
     /// Nothing left to do.
     Finished,

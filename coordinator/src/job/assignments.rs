@@ -75,8 +75,9 @@ fn context_views(plan: &Plan, phase: Phase) -> usize {
     }
 }
 
-/// The evaluation of both stages' final weights (each scored as its stage trained), for the
-/// one worker of the group; `None` when the job has no evaluation section.
+/// The evaluation of the final weights of every stage the job trains (each scored as its
+/// stage trained), for the one worker of the group; `None` when the job has no evaluation
+/// section.
 pub fn evaluate(plan: &Plan, durable: &Durable, generation: u64) -> Option<Assignment> {
     let spec = plan.config.evaluate.as_ref()?;
     let finals = [
@@ -85,6 +86,7 @@ pub fn evaluate(plan: &Plan, durable: &Durable, generation: u64) -> Option<Assig
     ];
     let checkpoints = finals
         .into_iter()
+        .filter(|(phase, _)| plan.trains(*phase))
         .filter_map(|(phase, location)| {
             Some(CheckpointToEvaluate {
                 stage: phase,

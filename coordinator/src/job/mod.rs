@@ -168,6 +168,34 @@ fn incarnation_base() -> u64 {
         .map_or(0, |d| d.as_micros() as u64)
 }
 
+/// The phase a job read back as `durable` resumes in under `plan`: a YAML that stops after
+/// stage 1 sets saved stage-2 progress aside; a state saved before evaluation existed (stage 2
+/// done, no final weights recorded) has nothing to evaluate; without an evaluation section
+/// the job is finished once training is.
+fn resumed_phase(plan: &Plan, durable: &Durable) -> Phase {
+    let after_training = if plan.config.evaluate.is_some() {
+        Phase::Evaluate
+    } else {
+        Phase::Finished
+    };
+    match durable.phase {
+        Phase::Stage2 if !plan.trains(Phase::Stage2) => {
+            tracing::warn!(
+                "the job now stops after stage 1 (stop_after); its stage-2 progress is set aside"
+            );
+            after_training
+        }
+        Phase::Evaluate if plan.trains(Phase::Stage2) && durable.stage2_final.is_none() => {
+            tracing::warn!(
+                "the saved job state finished stage 2 before evaluation existed; nothing to evaluate"
+            );
+            Phase::Finished
+        }
+        Phase::Evaluate => after_training,
+        phase => phase,
+    }
+}
+
 impl JobState {
     /// A job at its start, or where `durable` (read back after a coordinator restart) left it.
     pub fn new(plan: Plan, timing: Timing, durable: Option<Durable>) -> Self {
@@ -178,15 +206,7 @@ impl JobState {
     fn starting_at(plan: Plan, timing: Timing, durable: Option<Durable>, base: u64) -> Self {
         let job = plan.config.job.0.clone();
         let mut durable = durable.unwrap_or_else(|| Durable::new(job.clone()));
-        if durable.phase == Phase::Evaluate && durable.stage2_final.is_none() {
-            tracing::warn!(
-                "the saved job state finished stage 2 before evaluation existed; nothing to evaluate"
-            );
-            durable.phase = Phase::Finished;
-        }
-        if durable.phase == Phase::Evaluate && plan.config.evaluate.is_none() {
-            durable.phase = Phase::Finished;
-        }
+        durable.phase = resumed_phase(&plan, &durable);
         Self {
             timing,
             members: BTreeMap::new(),

@@ -66,7 +66,7 @@ pub struct LocalJob {
     pub stall_timeout_s: f64,
     /// Use in-memory generated scenes instead of a stored dataset.
     pub in_memory: bool,
-    /// Evaluate stage 2's final weights after training (a small TPS, probe and
+    /// Evaluate the trained stages' final weights after training (a small TPS, probe and
     /// reconstruction run on generated scenes).
     pub evaluate: bool,
     /// The objective variant of stage 1, and of stage 2 unless it is a stage-1-only one;

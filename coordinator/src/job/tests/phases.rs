@@ -174,6 +174,49 @@ fn a_saved_state_resumes_where_it_was_and_an_old_evaluation_state_counts_as_fini
     assert!(run.state.finished(), "no stage 2 result to evaluate");
 }
 
+/// The checkpoints the evaluation `run` hands out scores.
+fn scored(run: &mut Run) -> Vec<String> {
+    let assigned = run.assign(0);
+    let evaluator = assigned
+        .iter()
+        .find(|a| a.is_some())
+        .expect("an evaluation");
+    let checkpoints = &evaluation(evaluator).checkpoints;
+    checkpoints.iter().map(|c| c.weights.clone()).collect()
+}
+
+#[test]
+fn a_job_stopping_after_stage_1_resumes_its_evaluation_and_sets_stage_2_aside() {
+    let stage1_only = || plan_with("evaluate: {}\nstop_after: stage1\n");
+    let mut evaluating = Durable::new("unit".into());
+    evaluating.phase = Phase::Evaluate;
+    evaluating.stage1_final = Some("mem://stage1/4".into());
+    let mut run = Run::of(stage1_only(), Some(evaluating.clone()));
+    assert_eq!(
+        run.state.phase(),
+        Phase::Evaluate,
+        "stage 1 is all it trains"
+    );
+    assert_eq!(scored(&mut run), ["mem://stage1/4"]);
+
+    // A job saved in (or after) stage 2 whose YAML now stops after stage 1.
+    let mut in_stage2 = evaluating.clone();
+    in_stage2.phase = Phase::Stage2;
+    in_stage2.last_commit = Some(Commit {
+        phase: Phase::Stage2,
+        step: 1,
+        location: "mem://stage2/1".into(),
+    });
+    let mut run = Run::of(stage1_only(), Some(in_stage2.clone()));
+    assert_eq!(run.state.phase(), Phase::Evaluate);
+    assert_eq!(scored(&mut run), ["mem://stage1/4"]);
+    let run = Run::of(plan_with("stop_after: stage1\n"), Some(in_stage2));
+    assert!(run.state.finished(), "nothing to evaluate");
+    evaluating.stage2_final = Some("mem://stage2/2".into());
+    let mut run = Run::of(stage1_only(), Some(evaluating));
+    assert_eq!(scored(&mut run), ["mem://stage1/4"]);
+}
+
 #[test]
 fn init_weights_start_stage1_and_only_until_its_first_commit() {
     let mut run = Run::of(plan_with("init_weights: s3://released/xfactor-2v\n"), None);
