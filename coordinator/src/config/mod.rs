@@ -102,8 +102,8 @@ pub struct ClusterConfig {
     #[serde(default = "default_max_skipped_frames")]
     pub max_skipped_frames: u64,
     /// Evaluate the final weights of every trained stage (TPS, pose probe, reconstruction) on
-    /// one worker once training is done; the report lands under `<checkpoint.uri>/evaluation/`. Absent: no
-    /// evaluation stage. Every key is optional (`evaluate: {}` takes the defaults).
+    /// one worker once training is done; the report lands under `<checkpoint.uri>/evaluation/`.
+    /// Absent: no evaluation stage. Every key is optional (`evaluate: {}` takes the defaults).
     #[serde(default)]
     pub evaluate: Option<EvaluationSpec>,
     /// A checkpoint directory (ours, or the authors' weights brought in by

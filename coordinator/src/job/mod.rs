@@ -173,11 +173,7 @@ fn incarnation_base() -> u64 {
 /// done, no final weights recorded) has nothing to evaluate; without an evaluation section
 /// the job is finished once training is.
 fn resumed_phase(plan: &Plan, durable: &Durable) -> Phase {
-    let after_training = if plan.config.evaluate.is_some() {
-        Phase::Evaluate
-    } else {
-        Phase::Finished
-    };
+    let after_training = plan.after_training();
     match durable.phase {
         Phase::Stage2 if !plan.trains(Phase::Stage2) => {
             tracing::warn!(
@@ -254,14 +250,9 @@ impl JobState {
 
     /// The phase after `phase` in this job.
     fn next_phase(&self, phase: Phase) -> Phase {
-        let after_training = if self.plan.config.evaluate.is_some() {
-            Phase::Evaluate
-        } else {
-            Phase::Finished
-        };
         match phase {
             Phase::Stage1 if self.plan.trains(Phase::Stage2) => Phase::Stage2,
-            Phase::Stage1 | Phase::Stage2 => after_training,
+            Phase::Stage1 | Phase::Stage2 => self.plan.after_training(),
             Phase::Evaluate | Phase::Finished => Phase::Finished,
         }
     }

@@ -220,6 +220,15 @@ impl Plan {
         phase.is_training() && self.stage(phase).steps > 0
     }
 
+    /// The phase after the last trained stage: the evaluation, when the job has one.
+    pub fn after_training(&self) -> Phase {
+        if self.config.evaluate.is_some() {
+            Phase::Evaluate
+        } else {
+            Phase::Finished
+        }
+    }
+
     /// The training stages the job runs, in order.
     pub fn trained_stages(&self) -> Vec<Phase> {
         [Phase::Stage1, Phase::Stage2]
