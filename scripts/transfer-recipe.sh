@@ -46,16 +46,19 @@ for seed in ${SEEDS//,/ }; do
     "$BIN/xfactor-local" --dir "$run" --seed "$seed" "${RECIPE[@]}" "$@" >"$run.log" 2>&1 \
         || { echo "transfer-recipe: seed $seed failed, see $run.log" >&2; exit 1; }
     figures=$(grep '^outcome=' "$run.log")
-    unrelated=$(python3 - "$run" <<'PY'
+    # Stage 1's transfers and the unrelated-path calibration at full precision from the report
+    # (the figures line rounds them), so the lead agrees with `xfactor compare`'s.
+    transfers=$(python3 - "$run" <<'PY'
 import glob, json, sys
 report = json.load(open(glob.glob(sys.argv[1] + "/checkpoints/evaluation/*/report.json")[0]))
-metrics = report["stages"][0]["trained"]["tps"]["unrelated_trajectory"]
-auc = next(t["auc"] for t in metrics["thresholds"] if t["threshold"] == 30)
-print(f"{auc:.4f} {metrics['spread']['auc30']:.4f}")
+stage1 = next(s for s in report["stages"] if s["checkpoint"]["label"] == "stage1")
+tps = stage1["trained"]["tps"]
+for metrics in (tps["model"], tps["unrelated_trajectory"]):
+    auc = next(t["auc"] for t in metrics["thresholds"] if t["threshold"] == 30)
+    print(f"{auc:.6f} {metrics['spread']['auc30']:.6f}", end=" ")
 PY
 )
-    read -r calibration calibration_spread <<<"$unrelated"
-    tps=$(field stage1_tps_auc30 "$figures") tps_spread=$(field stage1_tps_auc30_spread "$figures")
+    read -r tps tps_spread calibration calibration_spread <<<"$transfers"
     line=$(awk -v seed="$seed" -v tps="$tps" -v ts="$tps_spread" -v cal="$calibration" -v cs="$calibration_spread" \
         -v s2="$(field stage2_tps_auc30 "$figures")" -v s2s="$(field stage2_tps_auc30_spread "$figures")" \
         -v probe="$(field stage1_probe_auc30 "$figures")" -v untrained="$(field stage1_untrained_probe_auc30 "$figures")" \
