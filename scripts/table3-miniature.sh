@@ -7,7 +7,7 @@
 # bootstrap spreads and its transfers' lead over the unrelated path. A run whose folder already
 # holds an evaluation is not trained again, so the table can be completed over several
 # sessions; its latest evaluation is the one compared. About 30 minutes a run on 2 cores (the
-# extra view in encoder and decoder: 55).
+# extra-view models: 35, measured with the machine to themselves).
 #
 #   scripts/table3-miniature.sh [--seeds 8,9] [--variants xfactor,unconstrained,...]
 #                               [--out table3-runs] [--no-build]
