@@ -5,10 +5,10 @@
 # weights are the full run's at step 4000, byte for byte), a short stage 2, then the first run's
 # evaluation (16 held-out scenes, 128 transfers). Fails unless stage 1's TPS AUC@30 leads
 # the oracle's unrelated-path calibration by 3 of their combined spreads, the recipe's target.
-# The seed is named because seeds differ, and differ again between CPUs (docs/testing.md):
-# seed 9 is the one measured to lead at step 4000 on both kinds of machine seen here (4.5
-# spreads on the machine of 2026-11-29 morning, 7.7 on an AVX-512 one), where seed 8 leads by
-# 5.2 on the first and not at all on the second (-8.6). About 9 to 11 minutes on 2 cores.
+# The seed is named because seeds differ: seed 9 leads by 4.5 spreads at step 4000, the same
+# on every x86-64 CPU with AVX-512 since gemm's blocking no longer follows the L1 cache
+# (vendor/gemm-common). On a CPU without AVX-512 a seed is another draw (docs/testing.md).
+# About 9 to 11 minutes on 2 cores.
 #
 #   scripts/transfer-guard.sh [--no-build] [--out transfer-guard-run]
 set -euo pipefail
