@@ -6,9 +6,8 @@
 # evaluation (16 held-out scenes, 128 transfers). Fails unless stage 1's TPS AUC@30 leads
 # the oracle's unrelated-path calibration by 3 of their combined spreads, the recipe's target.
 # The seed is named because seeds differ: seed 9 leads by 4.5 spreads at step 4000 on the
-# recipe's machine, and any x86-64 CPU with AVX-512 now trains a seed as that machine does
-# (gemm's blocking no longer follows the L1 cache: vendor/gemm-common). On a CPU without
-# AVX-512 a seed is another draw (docs/testing.md).
+# recipe's machine and on an AMD EPYC (gemm's blocking no longer follows the L1 cache:
+# vendor/gemm-common). On a CPU without AVX-512 a seed is another draw (docs/testing.md).
 # About 9 to 11 minutes on 2 cores.
 #
 #   scripts/transfer-guard.sh [--no-build] [--out transfer-guard-run]
