@@ -3,7 +3,8 @@
 # (issue 52: does stage 2 keep the transfer?). Copies the run's final stage-1 checkpoint into
 # OUT, writes the job record the coordinator resumes from (stage 2, nothing of it done yet) and
 # the run's cluster YAML with stage 2's steps and peak learning rate changed and no
-# evaluation, then runs a coordinator and two CPU workers on loopback until stage 2 commits.
+# evaluation (and without a --stage1-only run's `stop_after`), then runs a coordinator and two
+# CPU workers on loopback until stage 2 commits.
 # Evaluate the result with `xfactor evaluate --context-views 1|2`.
 #
 #   scripts/stage2-from-stage1.sh RUN_DIR OUT_DIR [--steps 150] [--peak-lr 0.001]
@@ -43,6 +44,8 @@ stage2 = re.search(r"stage2:\n(  .*\n)+", yaml).group(0)
 changed = re.sub(r"\b(curriculum_steps|total_steps|steps): \d+", lambda m: f"{m.group(1)}: {steps}", stage2)
 changed = re.sub(r"peak_lr: [0-9.e-]+", f"peak_lr: {lr}", changed)
 yaml = re.sub(r"\nevaluate:\n(  .*\n)+", "\n", yaml.replace(stage2, changed))
+# A run made with `xfactor-local --stage1-only` says to stop after stage 1; this one trains stage 2.
+yaml = re.sub(r"^stop_after: .*\n", "", yaml, flags=re.M)
 open(out + "/cluster.yaml", "w").write(yaml)
 record = {"job": "local-demo", "stage": 2, "earlier_commits": [], "stage1_final": stage1,
           "last_commit": {"stage": 1, "step": int(re.search(r"step-0*(\d+)", stage1).group(1)),
@@ -52,7 +55,9 @@ PY
 TOKEN=$(sed -n 's/^  token: //p' "$OUT/cluster.yaml" | head -1)
 "$BIN/xfactor-coordinator" run --config "$OUT/cluster.yaml" >"$OUT/coordinator.log" 2>&1 &
 COORDINATOR=$!
-trap 'kill $COORDINATOR 2>/dev/null; pkill -f "scratch $OUT/scratch" 2>/dev/null || true' EXIT
+# `|| true` on both: errexit holds inside the trap, and a coordinator that already ended would
+# otherwise turn a finished stage 2 into a failure.
+trap 'kill $COORDINATOR 2>/dev/null || true; pkill -f "scratch $OUT/scratch" 2>/dev/null || true' EXIT
 sleep 2
 for i in 0 1; do
     "$BIN/xfactor-worker" --coordinator "http://127.0.0.1:$PORT" --token "$TOKEN" \
