@@ -302,14 +302,41 @@ fn worker_log(running: &Running, index: usize) -> String {
     std::fs::read_to_string(running.job.dir.join(format!("worker-{index}.log"))).unwrap_or_default()
 }
 
+/// The value of `name=` in one log line's fields.
+fn field<'a>(fields: &'a str, name: &str) -> Option<&'a str> {
+    fields
+        .split(&format!("{name}="))
+        .nth(1)?
+        .split_whitespace()
+        .next()
+}
+
+/// The first checkpoint upload in `log` past byte `from` of a stage-1 step before
+/// `last_step`, when rank 0 has finished a step since it began: its location and the steps
+/// done since. The stage's last commit is waited for, so it never counts.
+fn upload_in_flight(log: &str, from: usize, last_step: u64) -> Option<(String, usize)> {
+    let tail = log.get(from..)?;
+    tail.match_indices("uploading checkpoint")
+        .find_map(|(offset, line)| {
+            let after = &tail[offset + line.len()..];
+            let fields = after.lines().next()?;
+            let location = field(fields, "location")?;
+            let step: u64 = field(fields, "step")?.parse().ok()?;
+            let steps = after.matches("step done").count();
+            (location.contains("/stage1/") && step < last_step && steps > 0)
+                .then(|| (location.to_string(), steps))
+        })
+}
+
 #[test]
 fn rank_0_killed_while_uploading_leaves_no_commit_and_the_survivor_finishes() {
     let dir = tempfile::tempdir().unwrap();
     let moto = Moto::start(dir.path());
     moto.create_bucket("xfactor");
-    // Uploads crawl through the proxy (a checkpoint is about 0.9 MB), so rank 0's second
-    // checkpoint is still on its way while it trains on.
-    let proxy = ThrottledProxy::start(moto.port, 100_000);
+    // The first commit goes through at full speed; then uploads crawl through the proxy (a
+    // checkpoint is about 0.9 MB), so rank 0's next checkpoint is still on its way while it
+    // trains on, however long the first upload would have taken at the slow rate.
+    let proxy = ThrottledProxy::start(moto.port, 0);
     let mut job = small_job(dir.path(), 2);
     job.stage1_steps = 400;
     job.checkpoint_every = 20;
@@ -317,23 +344,30 @@ fn rank_0_killed_while_uploading_leaves_no_commit_and_the_survivor_finishes() {
     job.store_env = moto.env_via(&proxy.endpoint);
     let mut running = Running::start(job);
     let deadline = Instant::now() + Duration::from_secs(300);
-    // Rank 0 is the worker that uploads; wait for its second upload and a step after it.
-    let (rank0, location, steps_while_uploading) = loop {
+    let (rank0, slowed_at) = loop {
         assert!(
             Instant::now() < deadline,
-            "no second upload\n{}",
+            "no first commit\n{}",
             running.logs()
         );
         std::thread::sleep(Duration::from_millis(20));
-        let found = (0..2).find_map(|index| {
+        let committed = (0..2).find_map(|index| {
             let log = worker_log(&running, index);
-            let (offset, line) = log.match_indices("uploading checkpoint").nth(1)?;
-            let after = &log[offset + line.len()..];
-            let location = after.split("location=").nth(1)?.split_whitespace().next()?;
-            let steps = after.matches("step done").count();
-            (steps > 0).then(|| (index, location.to_string(), steps))
+            log.contains(" committed").then_some((index, log.len()))
         });
-        if let Some(found) = found {
+        if let Some(committed) = committed {
+            proxy.set_rate(100_000);
+            break committed;
+        }
+    };
+    let (location, steps_while_uploading) = loop {
+        assert!(
+            Instant::now() < deadline,
+            "no upload in flight after the first commit\n{}",
+            running.logs()
+        );
+        std::thread::sleep(Duration::from_millis(20));
+        if let Some(found) = upload_in_flight(&worker_log(&running, rank0), slowed_at, 400) {
             break found;
         }
     };
