@@ -9,11 +9,18 @@
 #
 #   scripts/stage2-from-stage1.sh RUN_DIR OUT_DIR [--steps 150] [--peak-lr 0.001]
 set -euo pipefail
-cd "$(dirname "$0")/.."
-source scripts/env.sh
 RUN="${1:?usage: stage2-from-stage1.sh RUN_DIR OUT_DIR [--steps N] [--peak-lr LR]}"
 OUT="${2:?usage: stage2-from-stage1.sh RUN_DIR OUT_DIR [--steps N] [--peak-lr LR]}"
 shift 2
+# Both paths are the caller's: resolved before the script moves to the repository root.
+RUN=$(cd "$RUN" && pwd)
+mkdir -p "$OUT"
+OUT=$(cd "$OUT" && pwd)
+case "$RUN/" in
+    "$OUT"/*) echo "stage2-from-stage1: OUT_DIR $OUT holds the run $RUN, and is emptied first" >&2; exit 2 ;;
+esac
+cd "$(dirname "$0")/.."
+source scripts/env.sh
 STEPS=150 LR=0.001
 while [ $# -gt 0 ]; do
     case "$1" in
@@ -30,7 +37,6 @@ FINAL=$(python3 -c 'import json,sys; print(json.load(open(sys.argv[1]))["stage1_
 rm -rf "$OUT"
 mkdir -p "$OUT/checkpoints/stage1"
 cp -r "$FINAL" "$OUT/checkpoints/stage1/"
-OUT=$(cd "$OUT" && pwd)
 STAGE1="$OUT/checkpoints/stage1/$(basename "$FINAL")"
 PORT=$(python3 -c 'import socket; s=socket.socket(); s.bind(("127.0.0.1", 0)); print(s.getsockname()[1])')
 python3 - "$RUN/cluster.yaml" "$OUT" "$LR" "$STEPS" "$PORT" "$STAGE1" <<'PY'
