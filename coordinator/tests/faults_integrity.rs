@@ -328,6 +328,23 @@ fn upload_in_flight(log: &str, from: usize, last_step: u64) -> Option<(String, u
         })
 }
 
+/// Calls `found` every 20 ms until it gives a value; fails with `what` and the logs at
+/// `deadline`.
+fn poll<T>(
+    running: &Running,
+    deadline: Instant,
+    what: &str,
+    found: impl Fn(&Running) -> Option<T>,
+) -> T {
+    loop {
+        assert!(Instant::now() < deadline, "{what}\n{}", running.logs());
+        std::thread::sleep(Duration::from_millis(20));
+        if let Some(value) = found(running) {
+            return value;
+        }
+    }
+}
+
 #[test]
 fn rank_0_killed_while_uploading_leaves_no_commit_and_the_survivor_finishes() {
     let dir = tempfile::tempdir().unwrap();
@@ -344,33 +361,19 @@ fn rank_0_killed_while_uploading_leaves_no_commit_and_the_survivor_finishes() {
     job.store_env = moto.env_via(&proxy.endpoint);
     let mut running = Running::start(job);
     let deadline = Instant::now() + Duration::from_secs(300);
-    let (rank0, slowed_at) = loop {
-        assert!(
-            Instant::now() < deadline,
-            "no first commit\n{}",
-            running.logs()
-        );
-        std::thread::sleep(Duration::from_millis(20));
-        let committed = (0..2).find_map(|index| {
-            let log = worker_log(&running, index);
+    let (rank0, slowed_at) = poll(&running, deadline, "no first commit", |running| {
+        (0..2).find_map(|index| {
+            let log = worker_log(running, index);
             log.contains(" committed").then_some((index, log.len()))
-        });
-        if let Some(committed) = committed {
-            proxy.set_rate(100_000);
-            break committed;
-        }
-    };
-    let (location, steps_while_uploading) = loop {
-        assert!(
-            Instant::now() < deadline,
-            "no upload in flight after the first commit\n{}",
-            running.logs()
-        );
-        std::thread::sleep(Duration::from_millis(20));
-        if let Some(found) = upload_in_flight(&worker_log(&running, rank0), slowed_at, 400) {
-            break found;
-        }
-    };
+        })
+    });
+    proxy.set_rate(100_000);
+    let (location, steps_while_uploading) = poll(
+        &running,
+        deadline,
+        "no upload in flight after the first commit",
+        |running| upload_in_flight(&worker_log(running, rank0), slowed_at, 400),
+    );
     running.workers[rank0].kill().unwrap();
     let killed = Instant::now();
     proxy.set_rate(0);
