@@ -2,21 +2,21 @@
 # Stage 2 again from a finished local run's stage-1 final commit, with other stage-2 settings
 # (issue 52: does stage 2 keep the transfer?). Copies the run's final stage-1 checkpoint into
 # OUT, writes the job record the coordinator resumes from (stage 2, nothing of it done yet) and
-# the run's cluster YAML with stage 2's steps, peak learning rate (and micro-batch, warm-up,
-# commit interval) changed and no
+# the run's cluster YAML with stage 2's steps, peak learning rate (and micro-batch, warm-up and
+# its starting rate, commit interval) changed and no
 # evaluation (and without a --stage1-only run's `stop_after`), then runs a coordinator and two
 # CPU workers on loopback until stage 2 commits.
 # Evaluate the result with `xfactor evaluate --context-views 1|2`.
 #
 #   scripts/stage2-from-stage1.sh RUN_DIR OUT_DIR [--steps 150] [--peak-lr 0.001] [--micro-batch N]
-#                                 [--warmup-steps N] [--checkpoint-every N]
+#                                 [--warmup-steps N] [--initial-lr LR] [--checkpoint-every N]
 #
 # --micro-batch changes only how each worker splits its share of a step (the same samples, the
 # same mean gradient, summed in another order): a probe of how much stage 2 depends on the
 # order of float additions.
 set -euo pipefail
-RUN="${1:?usage: stage2-from-stage1.sh RUN_DIR OUT_DIR [--steps N] [--peak-lr LR] [--micro-batch N] [--warmup-steps N] [--checkpoint-every N]}"
-OUT="${2:?usage: stage2-from-stage1.sh RUN_DIR OUT_DIR [--steps N] [--peak-lr LR] [--micro-batch N] [--warmup-steps N] [--checkpoint-every N]}"
+RUN="${1:?usage: stage2-from-stage1.sh RUN_DIR OUT_DIR [--steps N] [--peak-lr LR] [--micro-batch N] [--warmup-steps N] [--initial-lr LR] [--checkpoint-every N]}"
+OUT="${2:?usage: stage2-from-stage1.sh RUN_DIR OUT_DIR [--steps N] [--peak-lr LR] [--micro-batch N] [--warmup-steps N] [--initial-lr LR] [--checkpoint-every N]}"
 shift 2
 # Both paths are the caller's: resolved before the script moves to the repository root.
 RUN=$(cd "$RUN" && pwd)
@@ -27,13 +27,14 @@ case "$RUN/" in
 esac
 cd "$(dirname "$0")/.."
 source scripts/env.sh
-STEPS=150 LR=0.001 MICRO= WARMUP= EVERY=
+STEPS=150 LR=0.001 MICRO= WARMUP= INITIAL= EVERY=
 while [ $# -gt 0 ]; do
     case "$1" in
         --steps) STEPS="$2"; shift ;;
         --peak-lr) LR="$2"; shift ;;
         --micro-batch) MICRO="$2"; shift ;;
         --warmup-steps) WARMUP="$2"; shift ;;
+        --initial-lr) INITIAL="$2"; shift ;;
         --checkpoint-every) EVERY="$2"; shift ;;
         *) echo "stage2-from-stage1: unknown argument $1" >&2; exit 2 ;;
     esac
@@ -48,9 +49,9 @@ mkdir -p "$OUT/checkpoints/stage1"
 cp -r "$FINAL" "$OUT/checkpoints/stage1/"
 STAGE1="$OUT/checkpoints/stage1/$(basename "$FINAL")"
 PORT=$(python3 -c 'import socket; s=socket.socket(); s.bind(("127.0.0.1", 0)); print(s.getsockname()[1])')
-python3 - "$RUN/cluster.yaml" "$OUT" "$LR" "$STEPS" "$PORT" "$STAGE1" "$MICRO" "$WARMUP" "$EVERY" <<'PY'
+python3 - "$RUN/cluster.yaml" "$OUT" "$LR" "$STEPS" "$PORT" "$STAGE1" "$MICRO" "$WARMUP" "$INITIAL" "$EVERY" <<'PY'
 import json, re, sys
-source, out, lr, steps, port, stage1, micro, warmup, every = sys.argv[1:]
+source, out, lr, steps, port, stage1, micro, warmup, initial, every = sys.argv[1:]
 yaml = open(source).read()
 yaml = re.sub(r"listen: .*", f"listen: 127.0.0.1:{port}", yaml)
 yaml = re.sub(r"(checkpoint:\n  uri: ).*", lambda m: m.group(1) + out + "/checkpoints", yaml)
@@ -64,6 +65,8 @@ if micro:
     changed = re.sub(r"micro_batch: \d+", f"micro_batch: {micro}", changed)
 if warmup:
     changed = re.sub(r"warmup_steps: \d+", f"warmup_steps: {warmup}", changed)
+if initial:
+    changed = re.sub(r"initial_lr: [0-9.e+-]+", f"initial_lr: {initial}", changed)
 yaml = re.sub(r"\nevaluate:\n(  .*\n)+", "\n", yaml.replace(stage2, changed))
 # A run made with `xfactor-local --stage1-only` says to stop after stage 1; this one trains stage 2.
 yaml = re.sub(r"^stop_after: .*\n", "", yaml, flags=re.M)
