@@ -44,6 +44,24 @@ BIN="$CARGO_TARGET_DIR/release"
 FINAL=$(python3 -c 'import json,sys; print(json.load(open(sys.argv[1]))["stage1_final"])' \
     "$RUN/checkpoints/job.json")
 [ -f "$FINAL/COMMIT.json" ] || { echo "stage2-from-stage1: $FINAL is no committed checkpoint" >&2; exit 1; }
+# Says which stage 1 it builds on, with that run's own stage-1 TPS where it evaluated one: a
+# stage 2 started from the wrong run's commit scores that run's stage 1, not the one meant.
+python3 - "$RUN" "$FINAL" <<'PY' >&2
+import glob, sys
+run, final = sys.argv[1:]
+tps = "not evaluated"
+for path in glob.glob(run + "/checkpoints/evaluation/*/report.md"):
+    header, found = None, []
+    for line in open(path):
+        cells = [c.strip() for c in line.strip().strip("|").split("|")]
+        if "SE3_Auc@30" in cells:
+            header = cells.index("SE3_Auc@30")
+        elif header is not None and cells[1:3] == ["trained", "TPS"]:
+            found.append(f"{cells[0]}: {cells[header]}")
+    if found:
+        tps = "; ".join(found)
+print(f"stage2-from-stage1: from {final} (the run's own evaluation, TPS AUC@30: {tps})")
+PY
 rm -rf "$OUT"
 mkdir -p "$OUT/checkpoints/stage1"
 cp -r "$FINAL" "$OUT/checkpoints/stage1/"
