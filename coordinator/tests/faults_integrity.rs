@@ -328,23 +328,6 @@ fn upload_in_flight(log: &str, from: usize, last_step: u64) -> Option<(String, u
         })
 }
 
-/// Calls `found` every 20 ms until it gives a value; fails with `what` and the logs at
-/// `deadline`.
-fn poll<T>(
-    running: &Running,
-    deadline: Instant,
-    what: &str,
-    found: impl Fn(&Running) -> Option<T>,
-) -> T {
-    loop {
-        assert!(Instant::now() < deadline, "{what}\n{}", running.logs());
-        std::thread::sleep(Duration::from_millis(20));
-        if let Some(value) = found(running) {
-            return value;
-        }
-    }
-}
-
 #[test]
 fn rank_0_killed_while_uploading_leaves_no_commit_and_the_survivor_finishes() {
     let dir = tempfile::tempdir().unwrap();
@@ -361,15 +344,14 @@ fn rank_0_killed_while_uploading_leaves_no_commit_and_the_survivor_finishes() {
     job.store_env = moto.env_via(&proxy.endpoint);
     let mut running = Running::start(job);
     let deadline = Instant::now() + Duration::from_secs(300);
-    let (rank0, slowed_at) = poll(&running, deadline, "no first commit", |running| {
+    let (rank0, slowed_at) = running.poll(deadline, "no first commit", |running| {
         (0..2).find_map(|index| {
             let log = worker_log(running, index);
             log.contains(" committed").then_some((index, log.len()))
         })
     });
     proxy.set_rate(100_000);
-    let (location, steps_while_uploading) = poll(
-        &running,
+    let (location, steps_while_uploading) = running.poll(
         deadline,
         "no upload in flight after the first commit",
         |running| upload_in_flight(&worker_log(running, rank0), slowed_at, 400),

@@ -67,18 +67,21 @@ impl Running {
     /// Waits until the coordinator's log shows `text` `count` times.
     pub fn wait_for_log(&self, text: &str, count: usize, limit: Duration) {
         let log = self.job.dir.join("coordinator.log");
-        let deadline = Instant::now() + limit;
-        while std::fs::read_to_string(&log)
-            .unwrap_or_default()
-            .matches(text)
-            .count()
-            < count
-        {
-            assert!(
-                Instant::now() < deadline,
-                "never logged `{text}`\n{}",
-                self.logs()
-            );
+        let what = format!("never logged `{text}`");
+        self.poll(Instant::now() + limit, &what, |_| {
+            let logged = std::fs::read_to_string(&log).unwrap_or_default();
+            (logged.matches(text).count() >= count).then_some(())
+        });
+    }
+
+    /// Calls `found` every 20 ms until it gives a value; fails with `what` and the logs at
+    /// `deadline`.
+    pub fn poll<T>(&self, deadline: Instant, what: &str, found: impl Fn(&Self) -> Option<T>) -> T {
+        loop {
+            if let Some(value) = found(self) {
+                return value;
+            }
+            assert!(Instant::now() < deadline, "{what}\n{}", self.logs());
             std::thread::sleep(Duration::from_millis(20));
         }
     }
